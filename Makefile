@@ -1,0 +1,39 @@
+# Every target sets up .venv on first use (idempotent: a stamp file records the install).
+# GPU machines: override the torch requirement, e.g.
+#   make test TORCH_SPEC="torch==2.13.0 --index-url https://download.pytorch.org/whl/cu128"
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.spoil_torchrl-installed
+ARGS ?=
+
+.PHONY: setup run test test-slow bench lint clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check $(TORCH_SPEC)
+	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[dev]"
+	@touch $(STAMP)
+
+# The main job. Until the DSRL recipe lands (issue 6) this is the tabular end-to-end run.
+run: $(STAMP)
+	$(PY) recipes/tabular_spoildice.py $(ARGS)
+
+test: $(STAMP)
+	$(PY) -m pytest -q $(ARGS)
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow $(ARGS)
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_losses.py $(ARGS)
+
+lint: $(STAMP)
+	$(PY) -m ruff check spoil_torchrl recipes tests benchmarks
+	$(PY) -m ruff format --check spoil_torchrl recipes tests benchmarks
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -1,0 +1,269 @@
+"""Density-ratio discriminators C_P (performant vs unlabeled) and C_S (safe vs unlabeled), Eq. (16)-(18)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, dispatch
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.objectives.functional import (
+    check_reduction,
+    gradient_penalty,
+    input_gradient_norms,
+    interpolate,
+    reduce,
+)
+from spoil_torchrl.objectives.keys import get_role, role_key
+
+
+def logistic_ratio_losses(
+    positive_logits: torch.Tensor, unlabeled_logits: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample terms of Eq. (16)/(17): ``-log C`` on positives and ``-log(1 - C)`` on unlabeled samples.
+
+    With ``C = sigmoid(logit)`` the maximiser is ``C* = d_pos / (d_pos + d_U)``, so ``logit = log(d_pos / d_U)``
+    (Eq. 18): the logit is the log density ratio ``log r_hat``.
+
+    Examples:
+        >>> pos, unl = logistic_ratio_losses(torch.zeros(2), torch.zeros(3))
+        >>> round(pos.mean().item(), 4), round(unl.mean().item(), 4)  # log 2 each
+        (0.6931, 0.6931)
+    """
+    return F.softplus(-positive_logits), F.softplus(unlabeled_logits)
+
+
+def pu_risk_losses(
+    positive_logits: torch.Tensor, unlabeled_logits: torch.Tensor, class_prior: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample terms of the unbiased PU risk (section 4.3; du Plessis et al., 2015).
+
+    Treating the unlabeled distribution as the mixture ``d_U = eta d_pos + (1 - eta) d_neg``, the
+    positive-negative logistic risk ``eta E_pos[-log C] + (1 - eta) E_neg[-log(1 - C)]`` is estimated without
+    negatives as ``eta E_pos[-log C + log(1 - C)] + E_U[-log(1 - C)]``. Its minimiser is the class posterior
+    ``C = eta d_pos / d_U``; convert the logit with :func:`pu_log_ratio`.
+
+    Examples:
+        >>> pos, unl = pu_risk_losses(torch.zeros(2), torch.zeros(2), class_prior=0.5)
+        >>> pos.tolist(), round(unl[0].item(), 4)
+        ([0.0, 0.0], 0.6931)
+    """
+    positive = class_prior * (F.softplus(-positive_logits) - F.softplus(positive_logits))
+    return positive, F.softplus(unlabeled_logits)
+
+
+def pu_log_ratio(logit: torch.Tensor, class_prior: float) -> torch.Tensor:
+    """``log(d_pos / d_U) = log C - log eta`` for a discriminator trained with :func:`pu_risk_losses`.
+
+    Examples:
+        >>> round(pu_log_ratio(torch.tensor(0.0), 0.5).item(), 6)  # C = 1/2, eta = 1/2 -> ratio 1
+        0.0
+    """
+    return F.logsigmoid(logit) - math.log(class_prior)
+
+
+class LogRatio(TensorDictModuleBase):
+    """A frozen view of a discriminator that writes :math:`\\log \\hat r` (Eq. 18) at ``out_key``.
+
+    The logit of a discriminator trained on Eq. (16)/(17) is :math:`\\log \\hat r`; pass ``log_ratio_fn``
+    (e.g. ``functools.partial(pu_log_ratio, class_prior=eta)``) for a PU-trained one. Use it with
+    :func:`~spoil_torchrl.objectives.annotate` to store :math:`\\log \\hat r_P` next to the unlabeled
+    transitions before training :class:`~spoil_torchrl.objectives.SpoilDICELoss`.
+
+    Examples:
+        >>> from tensordict.nn import TensorDictModule
+        >>> disc = TensorDictModule(lambda obs: 2 * obs, in_keys=["observation"], out_keys=["logit"])
+        >>> td = TensorDict({"observation": torch.ones(2, 1)}, [2])
+        >>> LogRatio(disc)(td)["log_ratio_performant"].squeeze(-1).tolist()
+        [2.0, 2.0]
+    """
+
+    def __init__(
+        self,
+        discriminator: TensorDictModule,
+        *,
+        out_key: NestedKey = "log_ratio_performant",
+        log_ratio_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    ) -> None:
+        super().__init__()
+        self.discriminator = discriminator
+        self.log_ratio_fn = log_ratio_fn
+        self.in_keys = list(discriminator.in_keys)
+        self.out_keys = [out_key]
+
+    @torch.no_grad()
+    def log_ratio(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """:math:`\\log \\hat r` for every row of ``tensordict`` (shape ``[*B, 1]``), without gradients."""
+        out = self.discriminator(tensordict.select(*self.in_keys).clone()).get(self.discriminator.out_keys[0])
+        return out if self.log_ratio_fn is None else self.log_ratio_fn(out)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict.set(self.out_keys[0], self.log_ratio(tensordict))
+        return tensordict
+
+
+class PUDiscriminatorLoss(LossModule):
+    r"""Trains a discriminator separating a positive role (performant or safe) from the unlabeled role.
+
+    Implements Eq. (16) (``positive="performant"``, giving :math:`\hat C_P`) and Eq. (17)
+    (``positive="safe"``, giving :math:`\hat C_S`) of the
+    `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_, with a WGAN-style
+    gradient penalty :math:`c\,E[(\lVert\nabla_x f(\tilde x)\rVert - 1)^2]` on points interpolated
+    between positive and unlabeled inputs and between pairs of unlabeled inputs (as DemoDICE's reference code
+    does). The discriminator's output is a logit, so by Eq. (18) it is directly :math:`\log \hat r`.
+
+    With ``class_prior=eta`` the unbiased PU risk of section 4.3 is used instead (:func:`pu_risk_losses`); then
+    the logit estimates the class posterior and :func:`pu_log_ratio` converts it to :math:`\log \hat r`.
+
+    Roles are sub-tensordicts of one batch: the discriminator's ``in_keys`` (e.g. ``"observation"``,
+    ``"action"``) are read inside ``tensordict[positive]`` and ``tensordict[unlabeled]``. Both role keys are
+    ordinary tensordict keys, overridable with :meth:`set_keys`.
+
+    Args:
+        discriminator (TensorDictModule): maps its ``in_keys`` to a logit written at its first ``out_key``.
+
+    Keyword Args:
+        positive (NestedKey): the positive role. Default ``"performant"``.
+        unlabeled (NestedKey): the unlabeled role. Default ``"unlabeled"``.
+        gradient_penalty (float): coefficient of the gradient penalty; 0 disables it. Default 10 (Table J).
+        class_prior (float, optional): PU class prior eta in (0, 1); ``None`` (default) is Eq. (16)/(17).
+        reduction (str): ``"mean"`` (default), ``"sum"`` or ``"none"`` for the per-sample terms.
+
+    Output keys: ``loss_positive`` and ``loss_unlabeled`` (the two expectations of the objective; their sum
+    is Eq. (16)/(17) negated), ``loss_gradient_penalty``, and the detached diagnostics ``logit_positive``,
+    ``logit_unlabeled`` (mean logits) and ``accuracy`` (balanced, at logit 0).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.modules import make_discriminator
+        >>> disc = make_discriminator(3, 2, hidden_cells=(16,))
+        >>> loss = PUDiscriminatorLoss(disc, positive="safe")
+        >>> def role(n):
+        ...     return TensorDict({"observation": torch.randn(n, 3), "action": torch.rand(n, 2)}, [n])
+        >>> batch = TensorDict({"safe": role(8), "unlabeled": role(16)}, [])
+        >>> out = loss(batch)
+        >>> sorted(k for k in out.keys() if k.startswith("loss_"))
+        ['loss_gradient_penalty', 'loss_positive', 'loss_unlabeled']
+        >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys.
+
+        Attributes:
+            positive (NestedKey): sub-tensordict of the positive role. Defaults to ``"performant"``.
+            unlabeled (NestedKey): sub-tensordict of the unlabeled role. Defaults to ``"unlabeled"``.
+        """
+
+        positive: NestedKey = "performant"
+        unlabeled: NestedKey = "unlabeled"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys = [
+        "loss_positive",
+        "loss_unlabeled",
+        "loss_gradient_penalty",
+        "logit_positive",
+        "logit_unlabeled",
+        "accuracy",
+    ]
+
+    discriminator_network: TensorDictModule
+    discriminator_network_params: TensorDictParams
+    target_discriminator_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        discriminator: TensorDictModule,
+        *,
+        positive: NestedKey = "performant",
+        unlabeled: NestedKey = "unlabeled",
+        gradient_penalty: float = 10.0,
+        class_prior: float | None = None,
+        reduction: str | None = None,
+    ) -> None:
+        super().__init__()
+        if gradient_penalty < 0:
+            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
+        if class_prior is not None and not 0.0 < class_prior < 1.0:
+            raise ValueError(f"class_prior must lie in (0, 1), got {class_prior}")
+        if len(discriminator.out_keys) < 1:
+            raise ValueError("the discriminator must write its logit to an out_key")
+        self.convert_to_functional(discriminator, "discriminator_network")
+        self.gradient_penalty = float(gradient_penalty)
+        self.class_prior = class_prior
+        self.reduction = check_reduction(reduction)
+        self.set_keys(positive=positive, unlabeled=unlabeled)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.discriminator_network.in_keys
+        roles = (self.tensor_keys.positive, self.tensor_keys.unlabeled)
+        return [role_key(role, key) for role in roles for key in keys]
+
+    def _logits(self, inputs: TensorDictBase) -> torch.Tensor:
+        with self.discriminator_network_params.to_module(self.discriminator_network):
+            out = self.discriminator_network(inputs)
+        return out.get(self.discriminator_network.out_keys[0]).reshape(-1)
+
+    def _penalty(self, positive: TensorDictBase, unlabeled: TensorDictBase) -> torch.Tensor:
+        if self.gradient_penalty == 0:
+            return torch.zeros((), device=unlabeled.device)
+        n = min(positive.shape[0], unlabeled.shape[0])
+        keys = self.discriminator_network.in_keys
+        shuffled = unlabeled[torch.randperm(unlabeled.shape[0], device=unlabeled.device)]
+        points = [
+            torch.cat(
+                [
+                    interpolate(positive.get(k)[:n], unlabeled.get(k)[:n]),
+                    interpolate(shuffled.get(k), unlabeled.get(k)),
+                ]
+            )
+            for k in keys
+        ]
+
+        def logit_fn(*tensors: torch.Tensor) -> torch.Tensor:
+            return self._logits(TensorDict(dict(zip(keys, tensors, strict=True)), [tensors[0].shape[0]]))
+
+        norms = input_gradient_norms(logit_fn, points)
+        return self.gradient_penalty * gradient_penalty(norms, target=1.0)
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Compute the discriminator losses on ``tensordict[positive]`` and ``tensordict[unlabeled]``."""
+        keys = self.discriminator_network.in_keys
+        positive = get_role(tensordict, self.tensor_keys.positive).select(*keys).reshape(-1)
+        unlabeled = get_role(tensordict, self.tensor_keys.unlabeled).select(*keys).reshape(-1)
+        n_pos = positive.shape[0]
+        logits = self._logits(torch.cat([positive, unlabeled], 0))
+        pos_logits, unl_logits = logits[:n_pos], logits[n_pos:]
+        if self.class_prior is None:
+            loss_pos, loss_unl = logistic_ratio_losses(pos_logits, unl_logits)
+        else:
+            loss_pos, loss_unl = pu_risk_losses(pos_logits, unl_logits, self.class_prior)
+        accuracy = 0.5 * ((pos_logits > 0).float().mean() + (unl_logits < 0).float().mean())
+        out = TensorDict(
+            {
+                "loss_positive": reduce(loss_pos, self.reduction),
+                "loss_unlabeled": reduce(loss_unl, self.reduction),
+                "loss_gradient_penalty": self._penalty(positive, unlabeled),
+                "logit_positive": pos_logits.detach().mean(),
+                "logit_unlabeled": unl_logits.detach().mean(),
+                "accuracy": accuracy.detach(),
+            },
+            [],
+        )
+        self._clear_weakrefs(tensordict, out, "discriminator_network_params")
+        return out

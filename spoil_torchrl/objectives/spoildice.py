@@ -1,0 +1,300 @@
+"""The SpoilDICE dual over (nu, lambda): Eq. (7), (11), (12) and (19) of the paper."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule, dispatch
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.objectives.functional import (
+    check_reduction,
+    gradient_penalty,
+    input_gradient_norms,
+    interpolate,
+    log_mean_exp,
+    self_normalized_weights,
+)
+from spoil_torchrl.objectives.keys import get_role, role_key
+
+
+def bellman_backup(next_nu: torch.Tensor, terminated: torch.Tensor, gamma: float) -> torch.Tensor:
+    """One-sample estimate of :math:`\\gamma (T\\nu)(s, a) = \\gamma\\, \\nu(s') (1 - \\text{terminated})`.
+
+    Only termination stops bootstrapping: a step cut by a time limit (truncated) keeps its real next state.
+
+    Examples:
+        >>> bellman_backup(torch.tensor([2.0, 2.0]), torch.tensor([0.0, 1.0]), gamma=0.5).tolist()
+        [1.0, 0.0]
+    """
+    return gamma * next_nu * (1.0 - terminated.to(next_nu.dtype))
+
+
+def spoildice_advantage(
+    log_ratio: torch.Tensor,
+    support: torch.Tensor,
+    lagrange: torch.Tensor,
+    nu: torch.Tensor,
+    backup: torch.Tensor,
+) -> torch.Tensor:
+    """Eq. (7): :math:`A_{\\nu,\\lambda}(s,a) = \\log r_P(s,a) + \\lambda \\mathbb 1_S(s,a) + \\gamma(T\\nu)(s,a) - \\nu(s)`.
+
+    (The :math:`-\\log w` term of Eq. (7) cancels in the closed form, Eq. (11).)
+
+    Examples:
+        >>> spoildice_advantage(torch.tensor([1.0]), torch.tensor([1.0]), torch.tensor(2.0),
+        ...                     torch.tensor([0.5]), torch.tensor([0.25])).item()
+        2.75
+    """
+    return log_ratio + lagrange * support + backup - nu
+
+
+def closed_form_log_weight(advantage: torch.Tensor) -> torch.Tensor:
+    """Eq. (11): :math:`\\log w^*_{\\nu,\\lambda}(s,a) = A_{\\nu,\\lambda}(s,a) - 1`, kept in log space.
+
+    Examples:
+        >>> closed_form_log_weight(torch.tensor([1.0])).exp().item()
+        1.0
+    """
+    return advantage - 1.0
+
+
+def spoildice_dual(
+    init_nu: torch.Tensor, advantage: torch.Tensor, lagrange: torch.Tensor, gamma: float
+) -> torch.Tensor:
+    """Eq. (19): :math:`\\tilde L(\\nu,\\lambda) = (1-\\gamma) E_{\\rho_0}[\\nu(s_0)] + \\log E_U[\\exp A] - \\lambda`.
+
+    This log-sum-exp form has the same minimiser in :math:`\\nu` as Eq. (12) (Proposition 3). Its gradient in
+    :math:`\\lambda` is :math:`E_U[\\tilde w \\mathbb 1_S] - 1` with :math:`\\tilde w` the self-normalised
+    closed-form weights, i.e. Eq. (12)'s :math:`\\lambda`-gradient :math:`E_U[w^* \\mathbb 1_S] - 1` evaluated
+    at the normalisation :math:`E_U[w^*] = 1` that holds at the optimum.
+
+    Examples:
+        >>> spoildice_dual(torch.zeros(3), torch.zeros(4), torch.tensor(0.5), gamma=0.9).item()
+        -0.5
+    """
+    return (1.0 - gamma) * init_nu.mean() + log_mean_exp(advantage) - lagrange
+
+
+class SpoilDICELoss(LossModule):
+    r"""SpoilDICE's dual objective over :math:`\nu` and the support multiplier :math:`\lambda`.
+
+    From the `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_ (section 4,
+    Algorithm 1). For unlabeled transitions :math:`(s, a, s')` the advantage (Eq. 7)
+
+    .. math:: A_{\nu,\lambda}(s,a) = \log \hat r_P(s,a) + \lambda \hat{\mathbb 1}_S(s,a) + \gamma \nu(s')(1 - d) - \nu(s)
+
+    (with :math:`d` the *terminated* flag) gives the closed-form correction :math:`w^* = \exp(A - 1)` (Eq. 11).
+
+    * ``loss_nu`` is the log-sum-exp dual of Eq. (19) (with :math:`\lambda` detached) plus a gradient penalty
+      :math:`c\,E[\lVert \nabla_s \nu(\tilde s) \rVert^2]` on unlabeled states, on states interpolated between
+      initial and unlabeled states and between :math:`s` and :math:`s'` (DemoDICE's reference form).
+    * ``loss_lambda`` is Eq. (19) with :math:`\nu` detached; its gradient :math:`E_U[\tilde w \hat{\mathbb 1}_S] - 1`
+      is Eq. (12)'s at normalised weights (see :func:`spoildice_dual`). Using the raw :math:`E_U[w^*]` of Eq. (12)
+      together with Eq. (19) would be inconsistent: Eq. (19) leaves the constant offset of :math:`\nu` free, and
+      that offset would then drive :math:`\lambda` instead of the support constraint. :math:`\lambda` is a free
+      real (equality constraint). When :math:`d_P` puts mass off the safe support the constraint can only be met
+      in the limit, so :math:`\lambda` keeps growing slowly; this is expected.
+
+    The self-normalised weights :math:`\tilde w = w^*/\overline{w^*}` (batch mean 1, computed after subtracting
+    the batch max, so they never overflow) are written, detached, into the *input* tensordict at
+    ``(unlabeled, weight)`` for :class:`~spoil_torchrl.objectives.WeightedBCLoss` (Eq. 20).
+
+    The input holds two roles: ``unlabeled`` transitions with the annotations ``log_ratio_performant``
+    (:math:`\log \hat r_P`, Eq. 18) and ``safe_support`` (:math:`\hat{\mathbb 1}_S`, Eq. 13), and ``init`` states
+    (:math:`\rho_0`). All keys can be changed with :meth:`set_keys`.
+
+    Args:
+        nu_network (TensorDictModule): :math:`\nu(s)`, reading its ``in_keys`` inside a role and writing a scalar.
+
+    Keyword Args:
+        gamma (float): discount in (0, 1). Default 0.99 (Table J).
+        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables. Default 10.
+        init_lagrange (float): initial :math:`\lambda`. Default 0.
+        reduction (str): only ``"mean"``: the log-sum-exp couples the samples of a batch, so the objective has no
+            per-sample form.
+
+    Output keys: ``loss_nu``, ``loss_lambda``, and detached diagnostics ``lagrange``, ``log_weight_mean``
+    (:math:`\log E_U[w^*]`, 0 once :math:`\nu` is normalised), ``weight_max`` (largest :math:`\tilde w`),
+    ``effective_sample_size`` (Kish ESS of :math:`\tilde w` as a fraction of the batch), ``support_fraction``
+    (:math:`E_U[\hat{\mathbb 1}_S]`), ``support_weight`` (:math:`E_U[\tilde w \hat{\mathbb 1}_S]`, 1 when the
+    support constraint holds), ``nu_init`` and ``advantage_mean``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.modules import make_value_network
+        >>> loss = SpoilDICELoss(make_value_network(3, hidden_cells=(16,)), gamma=0.99)
+        >>> n = 8
+        >>> unlabeled = TensorDict({
+        ...     "observation": torch.randn(n, 3),
+        ...     "next": {"observation": torch.randn(n, 3), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
+        ...     "log_ratio_performant": torch.randn(n, 1),
+        ...     "safe_support": torch.randint(0, 2, (n, 1)).float(),
+        ... }, [n])
+        >>> init = TensorDict({"observation": torch.randn(4, 3)}, [4])
+        >>> batch = TensorDict({"unlabeled": unlabeled, "init": init}, [])
+        >>> out = loss(batch)
+        >>> (out["loss_nu"] + out["loss_lambda"]).backward()
+        >>> batch["unlabeled", "dice_weight"].shape, round(batch["unlabeled", "dice_weight"].mean().item(), 4)
+        (torch.Size([8, 1]), 1.0)
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys.
+
+        Attributes:
+            unlabeled (NestedKey): sub-tensordict of unlabeled transitions. Defaults to ``"unlabeled"``.
+            init (NestedKey): sub-tensordict of initial states. Defaults to ``"init"``.
+            next (NestedKey): inside ``unlabeled``, where the next state's entries live. Defaults to ``"next"``.
+            terminated (NestedKey): inside ``unlabeled``. Defaults to ``("next", "terminated")``.
+            log_ratio (NestedKey): inside ``unlabeled``, :math:`\\log \\hat r_P`. Defaults to
+                ``"log_ratio_performant"``.
+            support (NestedKey): inside ``unlabeled``, :math:`\\hat{\\mathbb 1}_S`. Defaults to ``"safe_support"``.
+            weight (NestedKey): inside ``unlabeled``, where the detached weights are written. Defaults to
+                ``"dice_weight"``.
+        """
+
+        unlabeled: NestedKey = "unlabeled"
+        init: NestedKey = "init"
+        next: NestedKey = "next"
+        terminated: NestedKey = ("next", "terminated")
+        log_ratio: NestedKey = "log_ratio_performant"
+        support: NestedKey = "safe_support"
+        weight: NestedKey = "dice_weight"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys = [
+        "loss_nu",
+        "loss_lambda",
+        "lagrange",
+        "log_weight_mean",
+        "weight_max",
+        "effective_sample_size",
+        "support_fraction",
+        "support_weight",
+        "nu_init",
+        "advantage_mean",
+    ]
+
+    nu_network: TensorDictModule
+    nu_network_params: TensorDictParams
+    target_nu_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        nu_network: TensorDictModule,
+        *,
+        gamma: float = 0.99,
+        gradient_penalty: float = 10.0,
+        init_lagrange: float = 0.0,
+        reduction: str | None = None,
+    ) -> None:
+        super().__init__()
+        if not 0.0 < gamma < 1.0:
+            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
+        if gradient_penalty < 0:
+            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
+        self.reduction = check_reduction(reduction, allowed=("mean",))
+        self.convert_to_functional(nu_network, "nu_network")
+        self.gamma = float(gamma)
+        self.gradient_penalty = float(gradient_penalty)
+        self.lagrange = nn.Parameter(torch.tensor(float(init_lagrange)))
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        state_keys = self.nu_network.in_keys
+        unl = [role_key(keys.unlabeled, k) for k in state_keys]
+        nxt = [role_key(keys.unlabeled, role_key(keys.next, k)) for k in state_keys]
+        extra = [role_key(keys.unlabeled, k) for k in (keys.terminated, keys.log_ratio, keys.support)]
+        init = [role_key(keys.init, k) for k in state_keys]
+        return unl + nxt + extra + init
+
+    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
+        n = next(iter(states.values())).shape[0]
+        with self.nu_network_params.to_module(self.nu_network):
+            out = self.nu_network(TensorDict(states, [n]))
+        return out.get(self.nu_network.out_keys[0]).reshape(n)
+
+    def _penalty(self, init: dict, current: dict, following: dict) -> torch.Tensor:
+        if self.gradient_penalty == 0:
+            return torch.zeros(())
+        keys = list(current)
+        n0 = min(init[keys[0]].shape[0], current[keys[0]].shape[0])
+        points = [
+            torch.cat(
+                [
+                    current[k],
+                    interpolate(init[k][:n0], current[k][:n0]),
+                    interpolate(current[k], following[k]),
+                ]
+            )
+            for k in keys
+        ]
+        norms = input_gradient_norms(lambda *xs: self._nu(dict(zip(keys, xs, strict=True))), points)
+        return self.gradient_penalty * gradient_penalty(norms, target=None)
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Compute ``loss_nu`` and ``loss_lambda`` and write the weights into ``tensordict[unlabeled]``."""
+        keys = self.tensor_keys
+        unlabeled = get_role(tensordict, keys.unlabeled)
+        # The TED "terminated" entry is [*B, 1]: it fixes the batch shape, and with it each state's event shape
+        # (initial states live in the same space, whatever batch shape their role was given).
+        batch_shape = unlabeled.get(keys.terminated).shape[:-1]
+        n = batch_shape.numel()
+        state_keys = self.nu_network.in_keys
+        events = {k: unlabeled.get(k).shape[len(batch_shape) :] for k in state_keys}
+        init_role = get_role(tensordict, keys.init)
+        init = {k: init_role.get(k).reshape(-1, *events[k]) for k in state_keys}
+        current = {k: unlabeled.get(k).reshape(n, *events[k]) for k in state_keys}
+        following = {k: unlabeled.get(role_key(keys.next, k)).reshape(n, *events[k]) for k in state_keys}
+        n0 = init[state_keys[0]].shape[0]
+        if n0 == 0 or n == 0:
+            raise ValueError("SpoilDICELoss needs at least one unlabeled transition and one initial state")
+
+        nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
+        init_nu, nu, next_nu = nu_all.split([n0, n, n])
+        terminated = unlabeled.get(keys.terminated).reshape(n)
+        log_ratio = unlabeled.get(keys.log_ratio).reshape(n).to(nu.dtype)
+        support = unlabeled.get(keys.support).reshape(n).to(nu.dtype)
+        backup = bellman_backup(next_nu, terminated, self.gamma)
+
+        lagrange = self.lagrange
+        adv_nu = spoildice_advantage(log_ratio, support, lagrange.detach(), nu, backup)
+        adv_lambda = adv_nu.detach() + (lagrange - lagrange.detach()) * support
+        loss_nu = spoildice_dual(init_nu, adv_nu, lagrange.detach(), self.gamma)
+        loss_nu = loss_nu + self._penalty(init, current, following)
+        loss_lambda = spoildice_dual(init_nu.detach(), adv_lambda, lagrange, self.gamma)
+
+        with torch.no_grad():
+            log_w = closed_form_log_weight(adv_nu)
+            weights = self_normalized_weights(log_w)
+            unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
+            out = TensorDict(
+                {
+                    "loss_nu": loss_nu,
+                    "loss_lambda": loss_lambda,
+                    "lagrange": lagrange.detach().clone(),
+                    "log_weight_mean": log_mean_exp(log_w),
+                    "weight_max": weights.max(),
+                    "effective_sample_size": weights.sum().pow(2) / weights.pow(2).sum() / n,
+                    "support_fraction": support.mean(),
+                    "support_weight": (weights * support).mean(),
+                    "nu_init": init_nu.mean(),
+                    "advantage_mean": adv_nu.mean(),
+                },
+                [],
+            )
+        self._clear_weakrefs(tensordict, out, "nu_network_params")
+        return out

@@ -1,0 +1,147 @@
+"""Weighted behavioural cloning, Eq. (20): one loss for BC, filtered BC and DICE policy extraction."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import ProbabilisticTensorDictSequential, dispatch
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.objectives.functional import check_reduction, reduce
+from spoil_torchrl.objectives.keys import get_role, role_key
+
+
+def weighted_nll(log_prob: torch.Tensor, weight: torch.Tensor | None) -> torch.Tensor:
+    """Per-sample terms of Eq. (20): :math:`-w(s,a) \\log \\pi(a|s)` (``weight=None`` means :math:`w = 1`).
+
+    Examples:
+        >>> weighted_nll(torch.tensor([-1.0, -2.0]), torch.tensor([0.0, 2.0])).tolist()
+        [0.0, 4.0]
+    """
+    nll = -log_prob
+    return nll if weight is None else weight.detach().to(nll.dtype) * nll
+
+
+class WeightedBCLoss(LossModule):
+    r"""Weighted behavioural cloning :math:`E_{(s,a)\sim D}[-w(s,a) \log \pi(a|s)]` (Eq. 20).
+
+    From the `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_, appendix D.3.
+    The weight is read (and detached) from a key of the role's sub-tensordict, so one loss covers:
+
+    * BC: ``role="performant"``, ``weight=None`` (:math:`w = 1`);
+    * filtered BC: ``role="performant"``, ``weight="safe_support"`` (:math:`w = \hat{\mathbb 1}_S`);
+    * DICE policy extraction: ``role="unlabeled"``, ``weight="dice_weight"`` (written by
+      :class:`~spoil_torchrl.objectives.SpoilDICELoss`).
+
+    ``"mean"`` reduction is the plain sample mean of Eq. (20), not a self-normalised one; DICE weights are
+    already normalised to batch mean 1.
+
+    Args:
+        actor_network (ProbabilisticTensorDictSequential): the policy; ``get_dist`` must give :math:`\pi(\cdot|s)`.
+
+    Keyword Args:
+        role (NestedKey): sub-tensordict holding the transitions. Default ``"performant"``.
+        weight (NestedKey, optional): weight entry inside the role; ``None`` for plain BC.
+        reduction (str): ``"mean"`` (default), ``"sum"`` or ``"none"``.
+
+    Output keys: ``loss_actor`` and the detached diagnostics ``log_prob`` (mean log-likelihood of the batch
+    actions) and ``weight_mean``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.modules import make_actor
+        >>> actor = make_actor(3, 2, hidden_cells=(16,))
+        >>> loss = WeightedBCLoss(actor, role="unlabeled", weight="dice_weight")
+        >>> unlabeled = TensorDict({"observation": torch.randn(8, 3), "action": torch.rand(8, 2) * 2 - 1,
+        ...                         "dice_weight": torch.rand(8, 1)}, [8])
+        >>> batch = TensorDict({"unlabeled": unlabeled}, [])
+        >>> out = loss(batch)
+        >>> out["loss_actor"].backward()
+        >>> loss.set_keys(weight=None)  # plain BC on the same role
+        >>> bool(loss(batch)["weight_mean"] == 1)
+        True
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys.
+
+        Attributes:
+            role (NestedKey): sub-tensordict of the cloned transitions. Defaults to ``"performant"``.
+            action (NestedKey): inside ``role``, the demonstrated action. Defaults to ``"action"``.
+            weight (NestedKey, optional): inside ``role``, the per-sample weight; ``None`` means 1.
+        """
+
+        role: NestedKey = "performant"
+        action: NestedKey = "action"
+        weight: NestedKey | None = None
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys = ["loss_actor", "log_prob", "weight_mean"]
+
+    actor_network: ProbabilisticTensorDictSequential
+    actor_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        actor_network: ProbabilisticTensorDictSequential,
+        *,
+        role: NestedKey = "performant",
+        weight: NestedKey | None = None,
+        reduction: str | None = None,
+    ) -> None:
+        super().__init__()
+        if not hasattr(actor_network, "get_dist"):
+            raise TypeError("actor_network must be a probabilistic actor with a get_dist method")
+        self.convert_to_functional(actor_network, "actor_network")
+        self.reduction = check_reduction(reduction)
+        self.set_keys(role=role, weight=weight)
+
+    def set_keys(self, **kwargs) -> None:
+        # ``weight=None`` is meaningful (plain BC), so it is stored instead of restoring the default.
+        weight_given = "weight" in kwargs
+        weight = kwargs.pop("weight", None)
+        super().set_keys(**kwargs)
+        if weight_given:
+            self.tensor_keys.weight = weight
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        inner = [*self.actor_network.in_keys, keys.action]
+        if keys.weight is not None:
+            inner.append(keys.weight)
+        return [role_key(keys.role, k) for k in inner]
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Compute ``loss_actor`` on the transitions of ``tensordict[role]``."""
+        keys = self.tensor_keys
+        role = get_role(tensordict, keys.role)
+        data = role.select(*self.actor_network.in_keys).reshape(-1)
+        action = role.get(keys.action)
+        action = action.reshape(-1, *action.shape[role.batch_dims :])
+        with self.actor_network_params.to_module(self.actor_network):
+            dist = self.actor_network.get_dist(data)
+        log_prob = dist.log_prob(action).reshape(-1)
+        weight = None if keys.weight is None else role.get(keys.weight).reshape(-1)
+        loss = weighted_nll(log_prob, weight)
+        out = TensorDict(
+            {
+                "loss_actor": reduce(loss, self.reduction),
+                "log_prob": log_prob.detach().mean(),
+                "weight_mean": torch.ones(()) if weight is None else weight.detach().float().mean(),
+            },
+            [],
+        )
+        self._clear_weakrefs(tensordict, out, "actor_network_params")
+        return out

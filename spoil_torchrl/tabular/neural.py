@@ -1,0 +1,203 @@
+"""The neural SpoilDICE pipeline (Algorithm 1) run on a tabular problem with one-hot features.
+
+Everything here uses the library's real pieces -- TorchRL replay buffers, :class:`PUDiscriminatorLoss`,
+:class:`SupportEstimator`, :class:`SpoilDICELoss`, :class:`WeightedBCLoss` -- so that the learned policy's
+occupancy can be compared with the exact solution of :func:`~spoil_torchrl.tabular.solve_spoildice`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from tqdm.auto import tqdm
+
+from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
+from spoil_torchrl.objectives import (
+    LogRatio,
+    PUDiscriminatorLoss,
+    SpoilDICELoss,
+    SupportEstimator,
+    WeightedBCLoss,
+    annotate,
+)
+from spoil_torchrl.tabular.cmdp import occupancy
+from spoil_torchrl.tabular.problems import DualDemoProblem
+from spoil_torchrl.tabular.sampling import one_hot, sample_initial_states, sample_transitions
+
+ROLES = ("safe", "performant", "unlabeled")
+
+
+@dataclass
+class TabularTrainingConfig:
+    """Settings of :func:`train_tabular_spoildice`. One-hot inputs call for larger learning rates than Table J.
+
+    The gradient penalties default to 0 here: a Lipschitz penalty on one-hot inputs would bias the tabular
+    ratios and values, which is exactly what this check must not have.
+    """
+
+    n_samples: int = 50_000
+    n_init: int = 5_000
+    batch_size: int = 512
+    discriminator_steps: int = 2_000
+    dice_steps: int = 4_000
+    discriminator_lr: float = 3e-3
+    nu_lr: float = 1e-2
+    lagrange_lr: float = 1e-2
+    actor_lr: float = 1e-2
+    discriminator_cells: tuple[int, ...] = (64, 64)
+    discriminator_gradient_penalty: float = 0.0
+    nu_gradient_penalty: float = 0.0
+    kappa: float = 0.001
+    init_lagrange: float = 0.0
+    seed: int = 0
+
+
+@dataclass
+class TabularTrainingResult:
+    """What :func:`train_tabular_spoildice` learned, as tables over states and actions."""
+
+    occupancy: np.ndarray  # [S, A] occupancy of the learned policy
+    policy: np.ndarray  # [S, A]
+    support: np.ndarray  # [S, A] estimated safe support (bool)
+    log_ratio_performant: np.ndarray  # [S, A] learned log r_P
+    history: list[dict] = field(default_factory=list)
+
+
+def _buffer(data: TensorDict, batch_size: int) -> TensorDictReplayBuffer:
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(data.shape[0]), batch_size=batch_size)
+    buffer.extend(data)
+    return buffer
+
+
+def _sample(buffers: dict[str, TensorDictReplayBuffer]) -> TensorDict:
+    return TensorDict({role: buffer.sample() for role, buffer in buffers.items()}, batch_size=[])
+
+
+def _step(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+
+
+def _sum_losses(out: TensorDict) -> torch.Tensor:
+    return sum(value for key, value in out.items() if key.startswith("loss_"))
+
+
+def _all_pairs(n_states: int, n_actions: int) -> TensorDict:
+    s, a = np.divmod(np.arange(n_states * n_actions), n_actions)
+    return TensorDict({"observation": one_hot(s, n_states), "action": one_hot(a, n_actions)}, [len(s)])
+
+
+def train_tabular_spoildice(
+    problem: DualDemoProblem,
+    config: TabularTrainingConfig | None = None,
+    *,
+    progress: bool = False,
+    log: Callable[[dict, int], None] | None = None,
+) -> TabularTrainingResult:
+    """Run Algorithm 1 on samples of ``problem`` and return the learned policy's exact occupancy.
+
+    Args:
+        problem: CMDP and distributions; D_S, D_P, D_U are ``config.n_samples`` i.i.d. draws from d_S, d_P, d_U.
+        config: hyper-parameters (:class:`TabularTrainingConfig`).
+        progress: show tqdm bars.
+        log: called as ``log(metrics, step)`` every 100 steps of each stage.
+
+    Examples:
+        >>> from spoil_torchrl.tabular.problems import random_dual_demo_problem
+        >>> cfg = TabularTrainingConfig(n_samples=2_000, n_init=100, discriminator_steps=5, dice_steps=5)
+        >>> result = train_tabular_spoildice(random_dual_demo_problem(seed=0), cfg)
+        >>> result.occupancy.shape, round(float(result.occupancy.sum()), 6)
+        ((6, 3), 1.0)
+    """
+    cfg = config or TabularTrainingConfig()
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    mdp = problem.mdp
+    n_s, n_a = mdp.n_states, mdp.n_actions
+    history: list[dict] = []
+
+    def record(stage: str, out: TensorDict, step: int) -> None:
+        if step % 100 == 0 or step == -1:
+            metrics = {f"{stage}/{k}": float(v.detach()) for k, v in out.items() if v.numel() == 1}
+            history.append({"step": step, **metrics})
+            if log is not None:
+                log(metrics, step)
+
+    # Input: D_S, D_P, D_U and the initial-state set D_0, one TorchRL buffer each.
+    datasets = {
+        "safe": sample_transitions(mdp, problem.d_S, cfg.n_samples, rng),
+        "performant": sample_transitions(mdp, problem.d_P, cfg.n_samples, rng),
+        "unlabeled": sample_transitions(mdp, problem.d_U, cfg.n_samples, rng),
+    }
+    buffers = {role: _buffer(data, cfg.batch_size) for role, data in datasets.items()}
+    buffers["init"] = _buffer(sample_initial_states(mdp, cfg.n_init, rng), cfg.batch_size)
+
+    # Pretrain C_P and C_S by optimising Eq. (16) and (17).
+    disc_losses = {}
+    for role in ("performant", "safe"):
+        disc = make_discriminator(n_s, n_a, hidden_cells=cfg.discriminator_cells)
+        disc_losses[role] = PUDiscriminatorLoss(
+            disc, positive=role, gradient_penalty=cfg.discriminator_gradient_penalty
+        )
+    disc_params = [p for loss in disc_losses.values() for p in loss.parameters()]
+    disc_optim = torch.optim.Adam(disc_params, lr=cfg.discriminator_lr)
+    disc_schedule = torch.optim.lr_scheduler.CosineAnnealingLR(disc_optim, max(cfg.discriminator_steps, 1))
+    for step in tqdm(range(cfg.discriminator_steps), desc="discriminators", disable=not progress):
+        batch = _sample(buffers)
+        outs = {role: loss(batch) for role, loss in disc_losses.items()}
+        _step(disc_optim, sum(_sum_losses(out) for out in outs.values()))
+        disc_schedule.step()
+        for role, out in outs.items():
+            record(f"discriminator_{role}", out, step)
+
+    # r_P, r_S from Eq. (18); the support indicator from Eq. (13); annotate D_U once.
+    ratio_p = LogRatio(disc_losses["performant"].get_stateful_net("discriminator_network", copy=True))
+    support = SupportEstimator(
+        disc_losses["safe"].get_stateful_net("discriminator_network", copy=True), kappa=cfg.kappa
+    ).fit(datasets["safe"])
+    annotate(buffers["unlabeled"], ratio_p)
+    annotate(buffers["unlabeled"], support)
+
+    # Initialise nu, lambda, pi; then optimise Eq. (19) for (nu, lambda) and Eq. (20) for pi.
+    dice = SpoilDICELoss(
+        make_value_network(n_s, hidden_cells=()),
+        gamma=mdp.gamma,
+        gradient_penalty=cfg.nu_gradient_penalty,
+        init_lagrange=cfg.init_lagrange,
+    )
+    actor = make_actor(n_s, n_a, hidden_cells=(), distribution="categorical")
+    policy_loss = WeightedBCLoss(actor, role="unlabeled", weight="dice_weight")
+    nu_optim = torch.optim.Adam(dice.nu_network_params.values(True, True), lr=cfg.nu_lr)
+    lagrange_optim = torch.optim.Adam([dice.lagrange], lr=cfg.lagrange_lr)
+    actor_optim = torch.optim.Adam(policy_loss.parameters(), lr=cfg.actor_lr)
+    optims = (nu_optim, lagrange_optim, actor_optim)
+    schedules = [torch.optim.lr_scheduler.CosineAnnealingLR(o, max(cfg.dice_steps, 1)) for o in optims]
+    for step in tqdm(range(cfg.dice_steps), desc="spoildice", disable=not progress):
+        batch = _sample({role: buffers[role] for role in ("unlabeled", "init")})
+        dice_out = dice(batch)
+        actor_out = policy_loss(batch)
+        for optim in optims:
+            optim.zero_grad(set_to_none=True)
+        (dice_out["loss_nu"] + dice_out["loss_lambda"] + actor_out["loss_actor"]).backward()
+        for optim, schedule in zip(optims, schedules, strict=True):
+            optim.step()
+            schedule.step()
+        record("spoildice", dice_out, step)
+        record("actor", actor_out, step)
+
+    # Output: the learned policy as a table, and its exact occupancy.
+    with torch.no_grad():
+        states = TensorDict({"observation": one_hot(np.arange(n_s), n_s)}, [n_s])
+        with policy_loss.actor_network_params.to_module(policy_loss.actor_network):
+            policy = policy_loss.actor_network.get_dist(states).probs.double().numpy()
+        pairs = _all_pairs(n_s, n_a)
+        estimated_support = support(pairs.clone())["safe_support"].reshape(n_s, n_a).bool().numpy()
+        log_ratio = ratio_p(pairs.clone())["log_ratio_performant"].reshape(n_s, n_a).double().numpy()
+    policy = policy / policy.sum(axis=1, keepdims=True)
+    return TabularTrainingResult(occupancy(mdp, policy), policy, estimated_support, log_ratio, history)

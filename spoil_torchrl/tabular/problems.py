@@ -1,0 +1,105 @@
+"""Random finite CMDPs with safe / performant / unlabeled demonstration distributions, for exact checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from spoil_torchrl.tabular.cmdp import TabularCMDP, occupancy
+
+
+@dataclass(frozen=True)
+class DualDemoProblem:
+    """A CMDP with the three demonstration distributions of IL-SP (section 4.1) and the policies behind them.
+
+    ``d_P`` comes from a reward-seeking policy that also takes costly actions, ``d_S`` from a policy that never
+    takes a costly action (so ``supp(d_S)`` excludes every costly pair), and ``d_U`` is an equal mixture of the
+    performant, the safe and the uniform policy's occupancies (full support, so every ratio ``d/d_U`` is
+    finite).
+    """
+
+    mdp: TabularCMDP
+    d_P: np.ndarray
+    d_S: np.ndarray
+    d_U: np.ndarray
+    pi_P: np.ndarray
+    pi_S: np.ndarray
+
+
+def random_cmdp(
+    n_states: int,
+    n_actions: int,
+    *,
+    seed: int,
+    gamma: float = 0.9,
+    cost_fraction: float = 0.3,
+    slip: float = 1.0,
+) -> TabularCMDP:
+    """A random CMDP: uniform rewards in [0, 1], cost 1 on a random ``cost_fraction`` of the pairs (never on
+    every action of a state), one initial state. Each action leads to a random "intended" next state with
+    probability ``1 - slip`` and to a Dirichlet(1)-random next state otherwise (``slip=1``: dense random
+    transitions; the paper's gridworld has ``slip=0.01``).
+
+    Examples:
+        >>> mdp = random_cmdp(4, 3, seed=0)
+        >>> mdp.transition.shape, bool((mdp.cost.min(axis=1) == 0).all())
+        ((4, 3, 4), True)
+    """
+    if n_states < 1 or n_actions < 2:
+        raise ValueError("a random CMDP needs at least one state and two actions")
+    rng = np.random.default_rng(seed)
+    if not 0.0 <= slip <= 1.0:
+        raise ValueError(f"slip must lie in [0, 1], got {slip}")
+    intended = np.eye(n_states)[rng.integers(n_states, size=(n_states, n_actions))]
+    transition = (1.0 - slip) * intended + slip * rng.dirichlet(np.ones(n_states), size=(n_states, n_actions))
+    reward = rng.uniform(size=(n_states, n_actions))
+    cost = (rng.uniform(size=(n_states, n_actions)) < cost_fraction).astype(np.float64)
+    for s in range(n_states):  # keep at least one cost-free action per state
+        if cost[s].all():
+            cost[s, rng.integers(n_actions)] = 0.0
+    init = np.zeros(n_states)
+    init[0] = 1.0
+    return TabularCMDP(transition, reward, cost, init, gamma)
+
+
+def softmax_policy(logits: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Row-wise softmax of ``logits`` ``[S, A]``, with probability 0 where ``mask`` is False.
+
+    Examples:
+        >>> softmax_policy(np.zeros((1, 2)), mask=np.array([[True, False]])).tolist()
+        [[1.0, 0.0]]
+    """
+    z = np.where(mask, logits, -np.inf) if mask is not None else logits
+    z = z - z.max(axis=1, keepdims=True)
+    p = np.exp(z)
+    return p / p.sum(axis=1, keepdims=True)
+
+
+def random_dual_demo_problem(
+    n_states: int = 6,
+    n_actions: int = 3,
+    *,
+    seed: int,
+    gamma: float = 0.9,
+    temperature: float = 0.3,
+    slip: float = 1.0,
+) -> DualDemoProblem:
+    """A :func:`random_cmdp` with IL-SP demonstration distributions (see :class:`DualDemoProblem`).
+
+    The performant policy is a softmax of the immediate reward with ``temperature``; the safe policy is a
+    random softmax restricted to cost-free actions.
+
+    Examples:
+        >>> problem = random_dual_demo_problem(seed=0)
+        >>> float((problem.d_S * problem.mdp.cost).sum()), bool((problem.d_U > 0).all())
+        (0.0, True)
+    """
+    mdp = random_cmdp(n_states, n_actions, seed=seed, gamma=gamma, slip=slip)
+    rng = np.random.default_rng(seed + 1)
+    pi_P = softmax_policy(mdp.reward / temperature)
+    pi_S = softmax_policy(rng.normal(size=(n_states, n_actions)), mask=mdp.cost == 0)
+    pi_uniform = np.full((n_states, n_actions), 1.0 / n_actions)
+    d_P, d_S = occupancy(mdp, pi_P), occupancy(mdp, pi_S)
+    d_U = (d_P + d_S + occupancy(mdp, pi_uniform)) / 3.0
+    return DualDemoProblem(mdp, d_P, d_S, d_U, pi_P, pi_S)

@@ -1,0 +1,57 @@
+"""Shared fixtures: small role-structured batches in the TED layout."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+OBS_DIM, ACT_DIM = 5, 2
+
+
+def transitions(n: int, obs_dim: int = OBS_DIM, act_dim: int = ACT_DIM) -> TensorDict:
+    """``n`` random transitions with every key the losses read."""
+    return TensorDict(
+        {
+            "observation": torch.randn(n, obs_dim),
+            "action": torch.rand(n, act_dim) * 2 - 1,
+            "next": {
+                "observation": torch.randn(n, obs_dim),
+                "reward": torch.randn(n, 1),
+                "cost": torch.rand(n, 1),
+                "terminated": torch.zeros(n, 1, dtype=torch.bool),
+                "truncated": torch.zeros(n, 1, dtype=torch.bool),
+                "done": torch.zeros(n, 1, dtype=torch.bool),
+            },
+            "log_ratio_performant": torch.randn(n, 1),
+            "safe_support": torch.randint(0, 2, (n, 1)).float(),
+        },
+        batch_size=[n],
+    )
+
+
+def dual_batch(n_safe: int = 16, n_perf: int = 12, n_unl: int = 32, n_init: int = 8) -> TensorDict:
+    """A batch with the four roles of a dual-demonstration sample."""
+    return TensorDict(
+        {
+            "safe": transitions(n_safe),
+            "performant": transitions(n_perf),
+            "unlabeled": transitions(n_unl),
+            "init": TensorDict({"observation": torch.randn(n_init, OBS_DIM)}, [n_init]),
+        },
+        batch_size=[],
+    )
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+
+
+@pytest.fixture
+def batch() -> TensorDict:
+    return dual_batch()
+
+
+def grads_of(module_params) -> list[torch.Tensor | None]:
+    return [p.grad for p in module_params]

@@ -1,0 +1,169 @@
+"""PUDiscriminatorLoss, in the style of TorchRL's test/objectives."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from spoil_torchrl.modules import make_discriminator
+from spoil_torchrl.objectives import LogRatio, PUDiscriminatorLoss, pu_log_ratio
+from tests.conftest import ACT_DIM, OBS_DIM
+
+
+def _loss(**kwargs) -> PUDiscriminatorLoss:
+    return PUDiscriminatorLoss(make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=(16, 16)), **kwargs)
+
+
+def test_output_keys_and_scalars(batch):
+    loss = _loss()
+    out = loss(batch)
+    assert set(out.keys()) == set(loss.out_keys)
+    for key in out.keys():
+        assert out[key].shape == torch.Size([])
+    assert out["loss_gradient_penalty"] > 0
+
+
+def test_losses_reach_only_discriminator_parameters(batch):
+    loss = _loss()
+    params = list(loss.parameters())
+    assert len(params) == len(list(loss.discriminator_network_params.values(True, True)))
+    for key in ("loss_positive", "loss_unlabeled", "loss_gradient_penalty"):
+        loss.zero_grad()
+        loss(batch)[key].backward()
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in params), key
+    for role in ("performant", "unlabeled"):
+        assert not batch[role, "observation"].requires_grad
+
+
+def test_matches_logistic_objective_by_hand(batch):
+    loss = _loss(gradient_penalty=0.0)
+    out = loss(batch)
+    net = loss.get_stateful_net("discriminator_network")
+    with torch.no_grad():
+        lp = net(batch["performant"].clone())["logit"]
+        lu = net(batch["unlabeled"].clone())["logit"]
+    expected_pos = -torch.log(torch.sigmoid(lp)).mean()
+    expected_unl = -torch.log(1 - torch.sigmoid(lu)).mean()
+    torch.testing.assert_close(out["loss_positive"], expected_pos, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out["loss_unlabeled"], expected_unl, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("reduction", ["none", "mean", "sum"])
+def test_reductions(batch, reduction):
+    torch.manual_seed(1)
+    none = _loss(reduction="none", gradient_penalty=0.0)
+    other = _loss(reduction=reduction, gradient_penalty=0.0)
+    other.load_state_dict(none.state_dict())
+    per_sample = none(batch)
+    reduced = other(batch)
+    n_pos, n_unl = batch["performant"].shape[0], batch["unlabeled"].shape[0]
+    assert per_sample["loss_positive"].shape == (n_pos,)
+    assert per_sample["loss_unlabeled"].shape == (n_unl,)
+    fn = {"none": lambda x: x, "mean": torch.mean, "sum": torch.sum}[reduction]
+    for key in ("loss_positive", "loss_unlabeled"):
+        torch.testing.assert_close(reduced[key], fn(per_sample[key]))
+
+
+def test_bad_reduction_and_arguments_raise():
+    with pytest.raises(ValueError, match="reduction"):
+        _loss(reduction="max")
+    with pytest.raises(ValueError, match="class_prior"):
+        _loss(class_prior=1.0)
+    with pytest.raises(ValueError, match="gradient_penalty"):
+        _loss(gradient_penalty=-1.0)
+
+
+def test_set_keys_changes_roles_and_rejects_unknown(batch):
+    loss = _loss(positive="safe")
+    assert ("safe", "observation") in loss.in_keys
+    renamed = batch.clone()
+    renamed.rename_key_("unlabeled", "pool")
+    loss.set_keys(unlabeled="pool")
+    assert ("pool", "action") in loss.in_keys
+    loss(renamed)
+    with pytest.raises(ValueError, match="not an accepted tensordict key"):
+        loss.set_keys(expert="safe")
+
+
+def test_missing_role_is_a_clear_error(batch):
+    del batch["performant"]
+    with pytest.raises(KeyError, match="no role 'performant'"):
+        _loss()(batch)
+
+
+def test_keyword_call_without_tensordict(batch):
+    loss = _loss()
+    kwargs = {"_".join(key): batch.get(key) for key in loss.in_keys}
+    out = loss(**kwargs)
+    assert isinstance(out, tuple) and len(out) == len(loss.out_keys)
+
+
+def test_gradient_penalty_is_differentiable(batch):
+    loss = _loss(gradient_penalty=10.0)
+    gp = loss(batch)["loss_gradient_penalty"]
+    assert gp > 0
+    grads = torch.autograd.grad(gp, list(loss.parameters()), allow_unused=True)
+    assert any(g is not None and g.abs().sum() > 0 for g in grads)
+
+
+def test_state_dict_round_trip(batch):
+    a, b = _loss(gradient_penalty=0.0), _loss(gradient_penalty=0.0)
+    b.load_state_dict(a.state_dict())
+    torch.testing.assert_close(a(batch)["loss_positive"], b(batch)["loss_positive"])
+
+
+def _categorical_problem():
+    # Positive and unlabeled distributions over 4 one-hot "state-action" categories.
+    p = torch.tensor([0.4, 0.3, 0.2, 0.1])
+    u = torch.tensor([0.25, 0.25, 0.25, 0.25])
+    return p, u
+
+
+def _train_on_categories(loss: PUDiscriminatorLoss, p, u, steps: int = 1500) -> torch.Tensor:
+    eye = torch.eye(4)
+    optim = torch.optim.Adam(loss.parameters(), lr=0.05)
+    for _ in range(steps):
+        ip, iu = torch.multinomial(p, 512, True), torch.multinomial(u, 512, True)
+        batch = TensorDict(
+            {
+                "performant": TensorDict({"observation": eye[ip], "action": torch.zeros(512, 1)}, [512]),
+                "unlabeled": TensorDict({"observation": eye[iu], "action": torch.zeros(512, 1)}, [512]),
+            },
+            [],
+        )
+        out = loss(batch)
+        optim.zero_grad()
+        (out["loss_positive"] + out["loss_unlabeled"]).backward()
+        optim.step()
+    with torch.no_grad():
+        query = TensorDict({"observation": eye, "action": torch.zeros(4, 1)}, [4])
+        return loss.get_stateful_net("discriminator_network")(query)["logit"].squeeze(-1)
+
+
+def test_optimal_logit_is_the_log_density_ratio():
+    """Eq. (16)-(18): the trained logit estimates log(d_pos / d_U)."""
+    p, u = _categorical_problem()
+    loss = PUDiscriminatorLoss(make_discriminator(4, 1, hidden_cells=()), gradient_penalty=0.0)
+    logit = _train_on_categories(loss, p, u)
+    torch.testing.assert_close(logit, torch.log(p / u), atol=0.12, rtol=0)
+
+
+def test_pu_form_recovers_the_ratio_through_pu_log_ratio():
+    p, u = _categorical_problem()
+    eta = 0.5
+    loss = PUDiscriminatorLoss(
+        make_discriminator(4, 1, hidden_cells=()), gradient_penalty=0.0, class_prior=eta
+    )
+    logit = _train_on_categories(loss, p, u)
+    torch.testing.assert_close(pu_log_ratio(logit, eta), torch.log(p / u), atol=0.12, rtol=0)
+    assert math.isclose(pu_log_ratio(torch.tensor(0.0), eta).item(), 0.0, abs_tol=1e-7)
+
+
+def test_log_ratio_module_writes_without_gradients(batch):
+    disc = make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=(8,))
+    td = LogRatio(disc)(batch["unlabeled"].clone())
+    assert td["log_ratio_performant"].shape == (32, 1)
+    assert not td["log_ratio_performant"].requires_grad

@@ -1,0 +1,16 @@
+"""The README's code blocks run."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_readme_loop_example_runs(capsys):
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    loop = [b for b in blocks if "SpoilDICELoss(" in b]
+    assert loop, "the README lost its training-loop example"
+    exec(compile(loop[0], "README.md", "exec"), {})
+    assert "lagrange" in capsys.readouterr().out
