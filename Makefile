@@ -30,6 +30,7 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_losses.py $(ARGS)
+	$(PY) benchmarks/bench_data.py
 
 lint: $(STAMP)
 	$(PY) -m ruff check spoil_torchrl recipes tests benchmarks

@@ -31,4 +31,6 @@ def test_tabular_recipe_end_to_end(tmp_path):
     for result in results:
         assert 0.0 <= result["tv_neural_vs_exact"] <= 1.0
         assert result["policies"]["SpoilDICE exact"]["cost"] == 0.0
+        assert result["policies"]["BC (d_P)"]["cost"] > 0.05  # the performant data are unsafe
+        assert result["tv_bc_vs_exact"] > 0.2
     assert list(tmp_path.rglob("*.csv")), "the TorchRL CSV logger wrote nothing"

@@ -5,8 +5,8 @@ from spoil_torchrl.objectives.discriminator import (
     LogRatio,
     PUDiscriminatorLoss,
     logistic_ratio_losses,
+    nnpu_risks,
     pu_log_ratio,
-    pu_risk_losses,
 )
 from spoil_torchrl.objectives.spoildice import (
     SpoilDICELoss,
@@ -28,8 +28,8 @@ __all__ = [
     "bellman_backup",
     "closed_form_log_weight",
     "logistic_ratio_losses",
+    "nnpu_risks",
     "pu_log_ratio",
-    "pu_risk_losses",
     "quantile_threshold",
     "spoildice_advantage",
     "spoildice_dual",

@@ -30,6 +30,13 @@ def _stored_tensordict(data: TensorDictBase | TensorStorage | ReplayBuffer) -> t
     )
 
 
+def _module_device(module: torch.nn.Module) -> torch.device | None:
+    """Where the module's parameters (or buffers) live; the data are moved there chunk by chunk."""
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return None
+
+
 @torch.no_grad()
 def annotate(
     data: TensorDictBase | TensorStorage | ReplayBuffer,
@@ -41,9 +48,10 @@ def annotate(
     """Run ``module`` over every stored row and write its ``out_keys`` into the storage in place.
 
     Rows are processed ``chunk_size`` at a time, so memory stays bounded for a multi-million-transition
-    dataset. An output key that already exists is overwritten. Works on a flat TensorDict, on a TorchRL
-    :class:`~torchrl.data.replay_buffers.TensorStorage` (in-memory or memory-mapped), and on a replay buffer
-    that uses one.
+    dataset; each chunk is moved to the module's device (a GPU discriminator annotating a CPU or memory-mapped
+    storage) and its outputs back to the storage's. An output key that already exists is overwritten. Works on
+    a flat TensorDict, on a TorchRL :class:`~torchrl.data.replay_buffers.TensorStorage` (in-memory or
+    memory-mapped), and on a replay buffer that uses one.
 
     Returns:
         the tensordict that was annotated.
@@ -62,12 +70,15 @@ def annotate(
     missing = [k for k in module.in_keys if k not in td.keys(include_nested=True)]
     if missing:
         raise KeyError(f"the stored data has no {missing}; it has {sorted(map(str, td.keys(True, True)))}")
+    device = _module_device(module)
     starts = range(0, n, chunk_size)
     for start in tqdm(starts, desc="annotate", disable=not progress, leave=False):
         stop = min(start + chunk_size, n)
-        out = module(td[start:stop].select(*module.in_keys).clone())
+        chunk = td[start:stop].select(*module.in_keys)
+        chunk = chunk.to(device) if device is not None else chunk.clone()
+        out = module(chunk)
         for key in module.out_keys:
-            value = out.get(key)
+            value = out.get(key).to(td.device) if td.device is not None else out.get(key).cpu()
             if key not in td.keys(include_nested=True):
                 full = torch.zeros((td.shape[0], *value.shape[1:]), dtype=value.dtype, device=value.device)
                 if td.is_locked:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,27 +40,31 @@ def logistic_ratio_losses(
     return F.softplus(-positive_logits), F.softplus(unlabeled_logits)
 
 
-def pu_risk_losses(
+def nnpu_risks(
     positive_logits: torch.Tensor, unlabeled_logits: torch.Tensor, class_prior: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-sample terms of the unbiased PU risk (section 4.3; du Plessis et al., 2015).
+    """The two parts of the non-negative PU risk (section 4.3; Kiryo et al., 2017), as batch means.
 
     Treating the unlabeled distribution as the mixture ``d_U = eta d_pos + (1 - eta) d_neg``, the
     positive-negative logistic risk ``eta E_pos[-log C] + (1 - eta) E_neg[-log(1 - C)]`` is estimated without
-    negatives as ``eta E_pos[-log C + log(1 - C)] + E_U[-log(1 - C)]``. Its minimiser is the class posterior
-    ``C = eta d_pos / d_U``; convert the logit with :func:`pu_log_ratio`.
+    negatives: the positive part is ``eta E_pos[-log C]`` and the negative part
+    ``E_U[-log(1 - C)] - eta E_pos[-log(1 - C)]``, clamped at 0. Without the clamp (the unbiased PU risk of du
+    Plessis et al., 2015) the risk is unbounded below once ``eta d_pos > d_U`` somewhere, and a flexible
+    discriminator diverges there. The minimiser is the class posterior ``C = eta d_pos / d_U``; convert its logit
+    with :func:`pu_log_ratio`.
 
     Examples:
-        >>> pos, unl = pu_risk_losses(torch.zeros(2), torch.zeros(2), class_prior=0.5)
-        >>> pos.tolist(), round(unl[0].item(), 4)
-        ([0.0, 0.0], 0.6931)
+        >>> positive, negative = nnpu_risks(torch.zeros(2), torch.zeros(2), class_prior=0.5)
+        >>> round(positive.item(), 4), round(negative.item(), 4)
+        (0.3466, 0.3466)
     """
-    positive = class_prior * (F.softplus(-positive_logits) - F.softplus(positive_logits))
-    return positive, F.softplus(unlabeled_logits)
+    positive = class_prior * F.softplus(-positive_logits).mean()
+    negative = F.softplus(unlabeled_logits).mean() - class_prior * F.softplus(positive_logits).mean()
+    return positive, negative.clamp_min(0.0)
 
 
 def pu_log_ratio(logit: torch.Tensor, class_prior: float) -> torch.Tensor:
-    """``log(d_pos / d_U) = log C - log eta`` for a discriminator trained with :func:`pu_risk_losses`.
+    """``log(d_pos / d_U) = log C - log eta`` for a discriminator trained with :func:`nnpu_risks`.
 
     Examples:
         >>> round(pu_log_ratio(torch.tensor(0.0), 0.5).item(), 6)  # C = 1/2, eta = 1/2 -> ratio 1
@@ -118,8 +123,9 @@ class PUDiscriminatorLoss(LossModule):
     between positive and unlabeled inputs and between pairs of unlabeled inputs (as DemoDICE's reference code
     does). The discriminator's output is a logit, so by Eq. (18) it is directly :math:`\log \hat r`.
 
-    With ``class_prior=eta`` the unbiased PU risk of section 4.3 is used instead (:func:`pu_risk_losses`); then
-    the logit estimates the class posterior and :func:`pu_log_ratio` converts it to :math:`\log \hat r`.
+    With ``class_prior=eta`` the non-negative PU risk of section 4.3 is used instead (:func:`nnpu_risks`, batch
+    level, so only ``"mean"`` reduction); then the logit estimates the class posterior and :func:`pu_log_ratio`
+    converts it to :math:`\log \hat r`. :meth:`log_ratio_module` returns the right conversion in both cases.
 
     Roles are sub-tensordicts of one batch: the discriminator's ``in_keys`` (e.g. ``"observation"``,
     ``"action"``) are read inside ``tensordict[positive]`` and ``tensordict[unlabeled]``. Both role keys are
@@ -137,7 +143,7 @@ class PUDiscriminatorLoss(LossModule):
 
     Output keys: ``loss_positive`` and ``loss_unlabeled`` (the two expectations of the objective; their sum
     is Eq. (16)/(17) negated), ``loss_gradient_penalty``, and the detached diagnostics ``logit_positive``,
-    ``logit_unlabeled`` (mean logits) and ``accuracy`` (balanced, at logit 0).
+    ``logit_unlabeled`` (mean logits) and ``accuracy`` (balanced, positive where :math:`\hat r > 1`).
 
     Examples:
         >>> import torch
@@ -196,6 +202,10 @@ class PUDiscriminatorLoss(LossModule):
             raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
         if class_prior is not None and not 0.0 < class_prior < 1.0:
             raise ValueError(f"class_prior must lie in (0, 1), got {class_prior}")
+        if class_prior is not None and reduction not in (None, "mean"):
+            raise ValueError(
+                "the non-negative PU risk (class_prior set) is a batch-level risk: use reduction='mean'"
+            )
         if len(discriminator.out_keys) < 1:
             raise ValueError("the discriminator must write its logit to an out_key")
         self.convert_to_functional(discriminator, "discriminator_network")
@@ -206,6 +216,17 @@ class PUDiscriminatorLoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
+
+    def log_ratio_module(self, out_key: NestedKey = "log_ratio_performant") -> LogRatio:
+        """A frozen copy of the trained discriminator writing :math:`\\log \\hat r` (Eq. 18) at ``out_key``,
+        with the PU conversion applied when ``class_prior`` is set."""
+        net = self.get_stateful_net("discriminator_network", copy=True)
+        fn = (
+            None
+            if self.class_prior is None
+            else functools.partial(pu_log_ratio, class_prior=self.class_prior)
+        )
+        return LogRatio(net, out_key=out_key, log_ratio_fn=fn)
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -218,6 +239,8 @@ class PUDiscriminatorLoss(LossModule):
             out = self.discriminator_network(inputs)
         return out.get(self.discriminator_network.out_keys[0]).reshape(-1)
 
+    # Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
+    @torch.compiler.disable
     def _penalty(self, positive: TensorDictBase, unlabeled: TensorDictBase) -> torch.Tensor:
         if self.gradient_penalty == 0:
             return torch.zeros((), device=unlabeled.device)
@@ -250,14 +273,21 @@ class PUDiscriminatorLoss(LossModule):
         logits = self._logits(torch.cat([positive, unlabeled], 0))
         pos_logits, unl_logits = logits[:n_pos], logits[n_pos:]
         if self.class_prior is None:
-            loss_pos, loss_unl = logistic_ratio_losses(pos_logits, unl_logits)
+            loss_pos, loss_unl = (
+                reduce(x, self.reduction) for x in logistic_ratio_losses(pos_logits, unl_logits)
+            )
+            pos_ratio, unl_ratio = pos_logits, unl_logits
         else:
-            loss_pos, loss_unl = pu_risk_losses(pos_logits, unl_logits, self.class_prior)
-        accuracy = 0.5 * ((pos_logits > 0).float().mean() + (unl_logits < 0).float().mean())
+            loss_pos, loss_unl = nnpu_risks(pos_logits, unl_logits, self.class_prior)
+            pos_ratio, unl_ratio = (
+                pu_log_ratio(pos_logits, self.class_prior),
+                pu_log_ratio(unl_logits, self.class_prior),
+            )
+        accuracy = 0.5 * ((pos_ratio > 0).float().mean() + (unl_ratio <= 0).float().mean())
         out = TensorDict(
             {
-                "loss_positive": reduce(loss_pos, self.reduction),
-                "loss_unlabeled": reduce(loss_unl, self.reduction),
+                "loss_positive": loss_pos,
+                "loss_unlabeled": loss_unl,
                 "loss_gradient_penalty": self._penalty(positive, unlabeled),
                 "logit_positive": pos_logits.detach().mean(),
                 "logit_unlabeled": unl_logits.detach().mean(),

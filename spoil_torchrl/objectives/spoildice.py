@@ -98,7 +98,8 @@ class SpoilDICELoss(LossModule):
       together with Eq. (19) would be inconsistent: Eq. (19) leaves the constant offset of :math:`\nu` free, and
       that offset would then drive :math:`\lambda` instead of the support constraint. :math:`\lambda` is a free
       real (equality constraint). When :math:`d_P` puts mass off the safe support the constraint can only be met
-      in the limit, so :math:`\lambda` keeps growing slowly; this is expected.
+      in the limit, so :math:`\lambda` keeps growing (with Adam by up to about one learning rate per step);
+      this is expected, and it is why :math:`\hat{\mathbb 1}_S` should not be all zero in a batch.
 
     The self-normalised weights :math:`\tilde w = w^*/\overline{w^*}` (batch mean 1, computed after subtracting
     the batch max, so they never overflow) are written, detached, into the *input* tensordict at
@@ -119,7 +120,8 @@ class SpoilDICELoss(LossModule):
             per-sample form.
 
     Output keys: ``loss_nu``, ``loss_lambda``, and detached diagnostics ``lagrange``, ``log_weight_mean``
-    (:math:`\log E_U[w^*]`, 0 once :math:`\nu` is normalised), ``weight_max`` (largest :math:`\tilde w`),
+    (:math:`\log E_U[w^*]`; Eq. (19) leaves :math:`\nu`'s constant offset free, so only its changes are
+    informative), ``weight_max`` (largest :math:`\tilde w`),
     ``effective_sample_size`` (Kish ESS of :math:`\tilde w` as a fraction of the batch), ``support_fraction``
     (:math:`E_U[\hat{\mathbb 1}_S]`), ``support_weight`` (:math:`E_U[\tilde w \hat{\mathbb 1}_S]`, 1 when the
     support constraint holds), ``nu_init`` and ``advantage_mean``.
@@ -226,9 +228,11 @@ class SpoilDICELoss(LossModule):
             out = self.nu_network(TensorDict(states, [n]))
         return out.get(self.nu_network.out_keys[0]).reshape(n)
 
+    # Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
+    @torch.compiler.disable
     def _penalty(self, init: dict, current: dict, following: dict) -> torch.Tensor:
         if self.gradient_penalty == 0:
-            return torch.zeros(())
+            return torch.zeros((), device=next(iter(current.values())).device)
         keys = list(current)
         n0 = min(init[keys[0]].shape[0], current[keys[0]].shape[0])
         points = [
@@ -251,7 +255,13 @@ class SpoilDICELoss(LossModule):
         unlabeled = get_role(tensordict, keys.unlabeled)
         # The TED "terminated" entry is [*B, 1]: it fixes the batch shape, and with it each state's event shape
         # (initial states live in the same space, whatever batch shape their role was given).
-        batch_shape = unlabeled.get(keys.terminated).shape[:-1]
+        terminated = unlabeled.get(keys.terminated)
+        if terminated.ndim < 2 or terminated.shape[-1] != 1:
+            raise ValueError(
+                f"{role_key(keys.unlabeled, keys.terminated)} must have a trailing dimension of 1 (TED layout), "
+                f"got shape {tuple(terminated.shape)}"
+            )
+        batch_shape = terminated.shape[:-1]
         n = batch_shape.numel()
         state_keys = self.nu_network.in_keys
         events = {k: unlabeled.get(k).shape[len(batch_shape) :] for k in state_keys}
@@ -265,9 +275,14 @@ class SpoilDICELoss(LossModule):
 
         nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
         init_nu, nu, next_nu = nu_all.split([n0, n, n])
-        terminated = unlabeled.get(keys.terminated).reshape(n)
+        terminated = terminated.reshape(n)
         log_ratio = unlabeled.get(keys.log_ratio).reshape(n).to(nu.dtype)
         support = unlabeled.get(keys.support).reshape(n).to(nu.dtype)
+        if not torch.compiler.is_compiling() and not bool(((support == 0) | (support == 1)).all()):
+            raise ValueError(
+                f"{role_key(keys.unlabeled, keys.support)} must be a 0/1 indicator (Eq. 13); got other values. "
+                "Write it with SupportEstimator, or point set_keys(support=...) at the right entry."
+            )
         backup = bellman_backup(next_nu, terminated, self.gamma)
 
         lagrange = self.lagrange

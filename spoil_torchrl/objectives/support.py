@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterable
 
 import torch
@@ -83,7 +84,7 @@ class SupportEstimator(TensorDictModuleBase):
         log_ratio_fn=None,
     ) -> None:
         super().__init__()
-        if not isinstance(kappa, (int, float)) or not 0.0 < kappa < 1.0:
+        if not isinstance(kappa, numbers.Real) or not 0.0 < float(kappa) < 1.0:
             raise ValueError(f"kappa must lie strictly between 0 and 1, got {kappa!r}")
         self.log_ratio_module = LogRatio(discriminator, out_key="log_ratio_safe", log_ratio_fn=log_ratio_fn)
         self.kappa = float(kappa)

@@ -139,7 +139,9 @@ class WeightedBCLoss(LossModule):
             {
                 "loss_actor": reduce(loss, self.reduction),
                 "log_prob": log_prob.detach().mean(),
-                "weight_mean": torch.ones(()) if weight is None else weight.detach().float().mean(),
+                "weight_mean": torch.ones((), device=log_prob.device)
+                if weight is None
+                else weight.detach().float().mean(),
             },
             [],
         )

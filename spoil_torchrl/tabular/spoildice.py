@@ -85,7 +85,8 @@ def _kl_flow_dual(mdp: TabularCMDP, d_ref: np.ndarray, pairs: np.ndarray, states
 
     def objective(nu):
         log_d = log_ref + b @ nu - 1.0
-        return c @ nu + np.exp(log_d).sum(), log_d
+        with np.errstate(over="ignore"):  # an overshooting trial step is rejected by the line search
+            return c @ nu + np.exp(log_d).sum(), log_d
 
     nu = np.zeros(len(idx_s))
     value, log_d = objective(nu)

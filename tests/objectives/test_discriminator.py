@@ -167,3 +167,37 @@ def test_log_ratio_module_writes_without_gradients(batch):
     td = LogRatio(disc)(batch["unlabeled"].clone())
     assert td["log_ratio_performant"].shape == (32, 1)
     assert not td["log_ratio_performant"].requires_grad
+
+
+def test_pu_risk_stays_bounded_when_the_prior_is_too_large():
+    """With eta * d_pos > d_U somewhere the unbiased PU risk is unbounded below; the non-negative one is not."""
+    p, u = _categorical_problem()
+    loss = PUDiscriminatorLoss(
+        make_discriminator(4, 1, hidden_cells=()), gradient_penalty=0.0, class_prior=0.7
+    )
+    logit = _train_on_categories(loss, p, u, steps=800)
+    assert logit.abs().max() < 15
+
+
+def test_pu_mode_needs_mean_reduction_and_converts_log_ratios(batch):
+    with pytest.raises(ValueError, match="reduction='mean'"):
+        _loss(class_prior=0.5, reduction="none")
+    loss = _loss(class_prior=0.5)
+    loss(batch)
+    module = loss.log_ratio_module()
+    net = loss.get_stateful_net("discriminator_network")
+    with torch.no_grad():
+        logit = net(batch["unlabeled"].clone())["logit"]
+    torch.testing.assert_close(
+        module(batch["unlabeled"].clone())["log_ratio_performant"], pu_log_ratio(logit, 0.5)
+    )
+    plain = _loss().log_ratio_module("lr")
+    assert plain.log_ratio_fn is None and plain.out_keys == ["lr"]
+
+
+def test_compiles_with_the_gradient_penalty(batch):
+    loss = _loss(gradient_penalty=10.0)
+    compiled = torch.compile(loss, backend="aot_eager")
+    out = compiled(batch)
+    (out["loss_positive"] + out["loss_unlabeled"] + out["loss_gradient_penalty"]).backward()
+    assert all(p.grad is not None for p in loss.parameters())

@@ -194,3 +194,33 @@ def test_lambda_grows_while_weight_sits_off_support(batch):
     out = loss(batch)
     assert loss.lagrange.item() > 3.0
     assert out["support_weight"].item() > max(before, 0.9)
+
+
+def test_unbatched_init_role_is_a_clear_error(batch):
+    from tensordict import TensorDict
+
+    batch["init"] = TensorDict({"observation": torch.randn(8, OBS_DIM)}, [])
+    with pytest.raises(ValueError, match="role 'init' has no batch dimension"):
+        _loss()(batch)
+
+
+def test_non_binary_support_and_flat_terminated_are_rejected(batch):
+    bad_support = batch.clone()
+    bad_support["unlabeled", "safe_support"] = torch.rand(32, 1)
+    with pytest.raises(ValueError, match="0/1 indicator"):
+        _loss()(bad_support)
+    flat = batch.clone()
+    flat["unlabeled"]["next"] = flat["unlabeled"]["next"].exclude("terminated")
+    flat["unlabeled"]["next"].batch_size = []
+    flat["unlabeled", "next", "terminated"] = torch.zeros(32, dtype=torch.bool)
+    with pytest.raises(ValueError, match="trailing dimension of 1"):
+        _loss()(flat)
+
+
+def test_compiles_with_the_gradient_penalty(batch):
+    loss = _loss(gradient_penalty=10.0)
+    compiled = torch.compile(loss, backend="aot_eager")
+    out = compiled(batch)
+    (out["loss_nu"] + out["loss_lambda"]).backward()
+    assert loss.lagrange.grad is not None
+    assert all(p.grad is not None for p in loss.nu_network_params.values(True, True))

@@ -40,3 +40,12 @@ def test_neural_spoildice_matches_the_exact_solution(seed):
     last = [h for h in result.history if "spoildice/lagrange" in h][-1]
     assert last["spoildice/lagrange"] > 1.0  # lambda grew to push weight onto the support
     assert last["spoildice/support_weight"] > 0.99
+
+
+@pytest.mark.xfail(strict=True, reason="one-sample exp(gamma nu(s')) bias, see the module docstring")
+def test_known_limitation_seed_2_stays_off():
+    torch.set_num_threads(2)
+    problem = random_dual_demo_problem(seed=2, slip=0.1)
+    exact = solve_spoildice(problem.mdp, problem.d_P, problem.d_S)
+    result = train_tabular_spoildice(problem, TabularTrainingConfig(seed=2))
+    assert total_variation(result.occupancy, exact) <= TV_TOLERANCE

@@ -1,0 +1,58 @@
+"""Datasets: loading (DSRL layout), IL-SP labelling, controlled mixes and dual-demonstration buffers."""
+
+from spoil_torchrl.data.buffers import DualDemoBuffers
+from spoil_torchrl.data.download import download, sha256_of
+from spoil_torchrl.data.episodes import (
+    DSRL_KEYS,
+    DatasetError,
+    episodes_from_arrays,
+    select_episodes,
+    validate_arrays,
+)
+from spoil_torchrl.data.hdf5 import read_dsrl_file, read_metadata, write_dsrl_file
+from spoil_torchrl.data.labeling import (
+    POOLS,
+    controlled_mix,
+    corrupt,
+    draw,
+    episode_stats,
+    ilsp_return_threshold,
+    label_ilsp,
+    replay_subsets,
+    stats_table,
+)
+from spoil_torchrl.data.load import (
+    dsrl_cache_dir,
+    fetch_dsrl,
+    generated_data_dir,
+    load_episodes,
+    parse_source,
+)
+
+__all__ = [
+    "DSRL_KEYS",
+    "POOLS",
+    "DatasetError",
+    "DualDemoBuffers",
+    "controlled_mix",
+    "corrupt",
+    "download",
+    "draw",
+    "dsrl_cache_dir",
+    "episode_stats",
+    "episodes_from_arrays",
+    "fetch_dsrl",
+    "generated_data_dir",
+    "ilsp_return_threshold",
+    "label_ilsp",
+    "load_episodes",
+    "parse_source",
+    "read_dsrl_file",
+    "read_metadata",
+    "replay_subsets",
+    "select_episodes",
+    "sha256_of",
+    "stats_table",
+    "validate_arrays",
+    "write_dsrl_file",
+]

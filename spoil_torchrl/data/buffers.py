@@ -1,0 +1,113 @@
+"""``DualDemoBuffers``: one TorchRL replay buffer per IL-SP role plus one of initial states."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import TensorDictReplayBuffer
+from torchrl.data.replay_buffers import RandomSampler
+from torchrl.data.replay_buffers.storages import TensorStorage
+
+from spoil_torchrl.data.episodes import select_episodes
+from spoil_torchrl.objectives.annotate import annotate
+
+
+def _role_data(episodes: TensorDict, ids: torch.Tensor) -> TensorDict:
+    """The role's transitions; all episodes -> the dataset itself (no copy)."""
+    n_episodes = int(episodes["episode"].max()) + 1
+    if ids.numel() == n_episodes and bool((torch.sort(ids).values == torch.arange(n_episodes)).all()):
+        return episodes
+    return select_episodes(episodes, ids)
+
+
+class DualDemoBuffers:
+    """Replay buffers for dual-demonstration training: ``sample()`` returns one TensorDict with a batch per role.
+
+    Each role's transitions (selected from ``episodes`` by episode ids) live in a TorchRL
+    :class:`~torchrl.data.TensorDictReplayBuffer` whose storage wraps them without a further copy (a role that
+    holds every episode shares the dataset's own memory, memory-mapped or not). The ``"init"`` buffer holds the
+    first observation of each episode of ``init_role`` (:math:`\\rho_0`, REFERENCES section 2). Sampling is
+    uniform with replacement and reproducible: buffer ``i`` draws from ``torch.Generator().manual_seed(seed + i)``.
+
+    Args:
+        episodes: TED-layout transitions with ``episode`` and ``is_init`` (from
+            :func:`~spoil_torchrl.data.load_episodes`).
+        roles: role name -> episode ids (e.g. from :func:`~spoil_torchrl.data.label_ilsp` / ``draw``).
+
+    Keyword Args:
+        batch_size: per-role batch size, an int for all roles or a mapping (missing roles get 512).
+        init_role: role whose episodes give the initial states. Default ``"unlabeled"``.
+        memmap_dir: memory-map the copied role subsets into this folder (the all-episodes role stays as loaded).
+        seed: base seed of the buffers' generators.
+
+    Examples:
+        >>> import numpy as np
+        >>> from spoil_torchrl.data.episodes import episodes_from_arrays
+        >>> n = 6
+        >>> episodes = episodes_from_arrays({
+        ...     "observations": np.random.randn(n, 3).astype(np.float32),
+        ...     "next_observations": np.random.randn(n, 3).astype(np.float32),
+        ...     "actions": np.zeros((n, 2), np.float32), "rewards": np.ones(n, np.float32),
+        ...     "costs": np.zeros(n, np.float32), "terminals": np.zeros(n, np.float32),
+        ...     "timeouts": np.array([0, 1, 0, 1, 0, 1], np.float32)})
+        >>> buffers = DualDemoBuffers(episodes, {"safe": [0], "performant": [1], "unlabeled": [0, 1, 2]},
+        ...                           batch_size={"safe": 4, "performant": 4, "unlabeled": 8, "init": 2})
+        >>> batch = buffers.sample()
+        >>> batch["unlabeled"].shape, batch["init"].shape, len(buffers["init"])
+        (torch.Size([8]), torch.Size([2]), 3)
+    """
+
+    def __init__(
+        self,
+        episodes: TensorDict,
+        roles: Mapping[str, object],
+        *,
+        batch_size: int | Mapping[str, int] = 512,
+        init_role: str = "unlabeled",
+        memmap_dir: str | os.PathLike | None = None,
+        seed: int = 0,
+    ) -> None:
+        if "init" in roles:
+            raise ValueError("'init' is reserved for the initial-state buffer")
+        if init_role not in roles:
+            raise ValueError(f"init_role {init_role!r} is not one of the roles {list(roles)}")
+        sizes = {r: batch_size for r in [*roles, "init"]} if isinstance(batch_size, int) else dict(batch_size)
+        self.buffers: dict[str, TensorDictReplayBuffer] = {}
+        for i, (role, ids) in enumerate([*roles.items(), ("init", None)]):
+            if role == "init":
+                data = _role_data(episodes, torch.as_tensor(roles[init_role], dtype=torch.int64))
+                data = data[data["is_init"].squeeze(-1)].select("observation", "episode")
+            else:
+                ids = torch.as_tensor(ids, dtype=torch.int64)
+                data = _role_data(episodes, ids)
+                if data is not episodes and memmap_dir is not None:
+                    data = data.memmap_(Path(memmap_dir) / role)
+            if data.shape[0] == 0:
+                raise ValueError(f"role {role!r} has no transitions")
+            self.buffers[role] = TensorDictReplayBuffer(
+                storage=TensorStorage(data),
+                sampler=RandomSampler(),
+                batch_size=sizes.get(role, 512),
+                generator=torch.Generator().manual_seed(seed + i),
+            )
+
+    @property
+    def roles(self) -> list[str]:
+        return list(self.buffers)
+
+    def __getitem__(self, role: str) -> TensorDictReplayBuffer:
+        return self.buffers[role]
+
+    def sample(self) -> TensorDict:
+        """One batch per role, ``TensorDict({role: batch, ..., "init": batch}, batch_size=[])``."""
+        return TensorDict({role: buffer.sample() for role, buffer in self.buffers.items()}, batch_size=[])
+
+    def annotate(self, role: str, module: TensorDictModuleBase, *, chunk_size: int = 65536) -> None:
+        """Write ``module``'s outputs (e.g. :class:`~spoil_torchrl.objectives.LogRatio`,
+        :class:`~spoil_torchrl.objectives.SupportEstimator`) into ``role``'s storage once, in chunks."""
+        annotate(self.buffers[role], module, chunk_size=chunk_size)

@@ -1,0 +1,196 @@
+"""Flat DSRL-layout arrays -> one TensorDict of transitions in TorchRL's TED layout, with episode ids.
+
+Keys of the result (DESIGN.md "Keys"): ``observation``, ``action``, ``("next", "observation")``,
+``("next", "reward")``, ``("next", "cost")`` (float32, trailing dim 1), ``("next", "terminated")``,
+``("next", "truncated")``, ``("next", "done")`` (bool, trailing dim 1), ``episode`` (int64) and ``is_init``
+(bool, trailing dim 1). A step cut by a time limit keeps its real next observation.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+#: The arrays of a DSRL HDF5 file (flat, episodes back to back).
+DSRL_KEYS = ("observations", "next_observations", "actions", "rewards", "costs", "terminals", "timeouts")
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be used as it is (missing keys, bad shapes, non-finite values, ...)."""
+
+
+def _tensor(x) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x
+    return torch.from_numpy(np.asarray(x))
+
+
+def _flag(x: torch.Tensor, name: str, source: str) -> torch.Tensor:
+    if x.dtype == torch.bool:
+        return x
+    if not torch.isfinite(x.double() if x.is_floating_point() else x.to(torch.float64)).all():
+        raise DatasetError(f"{source}: '{name}' contains NaN or infinite values")
+    values = torch.unique(x)
+    if not bool(((values == 0) | (values == 1)).all()):
+        raise DatasetError(f"{source}: '{name}' must hold 0/1 flags, found values {values[:5].tolist()}")
+    return x != 0
+
+
+def _first_non_finite_row(value: torch.Tensor, chunk_rows: int = 1 << 16) -> int:
+    """Index of the first row holding NaN / inf, or -1. Works in row chunks: ``torch.isfinite`` on a whole
+    multi-GB array would allocate temporaries as large as the array itself."""
+    for start in range(0, value.shape[0], chunk_rows):
+        ok = torch.isfinite(value[start : start + chunk_rows])
+        if not bool(ok.all()):
+            return start + int((~ok).reshape(ok.shape[0], -1).any(-1).nonzero()[0, 0])
+    return -1
+
+
+def validate_arrays(
+    arrays: Mapping[str, object],
+    *,
+    source: str = "arrays",
+    observation_dim: int | None = None,
+    action_dim: int | None = None,
+) -> dict[str, torch.Tensor]:
+    """Check DSRL-layout arrays and return them as tensors (no copy where the input is already a tensor/array).
+
+    Raises :class:`DatasetError` naming ``source`` for: a missing key, an empty dataset, arrays of different
+    lengths, observations / actions that are not 2-D (or 1-D actions, taken as one action dim), NaN or infinite
+    values, non-0/1 flags, and sizes that differ from ``observation_dim`` / ``action_dim``.
+
+    Examples:
+        >>> arrays = {k: np.zeros((3, 2), np.float32) for k in ("observations", "next_observations", "actions")}
+        >>> arrays.update({k: np.zeros(3, np.float32) for k in ("rewards", "costs", "terminals", "timeouts")})
+        >>> del arrays["costs"]
+        >>> validate_arrays(arrays, source="demo.hdf5")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: demo.hdf5: missing array 'costs' (a DSRL file has observations, \
+next_observations, actions, rewards, costs, terminals, timeouts)
+    """
+    missing = [k for k in DSRL_KEYS if k not in arrays]
+    if missing:
+        raise DatasetError(f"{source}: missing array '{missing[0]}' (a DSRL file has {', '.join(DSRL_KEYS)})")
+    out = {k: _tensor(arrays[k]) for k in DSRL_KEYS}
+    lengths = {k: v.shape[0] if v.ndim else 0 for k, v in out.items()}
+    if len(set(lengths.values())) != 1:
+        raise DatasetError(f"{source}: arrays have different lengths {lengths}")
+    n = lengths["observations"]
+    if n == 0:
+        raise DatasetError(f"{source}: the dataset is empty")
+    if out["actions"].ndim == 1:
+        out["actions"] = out["actions"].unsqueeze(-1)
+    for key in ("observations", "next_observations", "actions"):
+        if out[key].ndim != 2:
+            raise DatasetError(f"{source}: '{key}' must be 2-D [N, dim], got shape {tuple(out[key].shape)}")
+    for key in ("rewards", "costs", "terminals", "timeouts"):
+        if out[key].ndim == 2 and out[key].shape[1] == 1:
+            out[key] = out[key].squeeze(1)
+        if out[key].ndim != 1:
+            raise DatasetError(f"{source}: '{key}' must be 1-D [N], got shape {tuple(out[key].shape)}")
+    if out["observations"].shape != out["next_observations"].shape:
+        raise DatasetError(
+            f"{source}: observations {tuple(out['observations'].shape)} and next_observations "
+            f"{tuple(out['next_observations'].shape)} differ in shape"
+        )
+    for key in ("observations", "next_observations", "actions", "rewards", "costs"):
+        value = out[key]
+        if not value.is_floating_point():
+            raise DatasetError(f"{source}: '{key}' must be floating point, got {value.dtype}")
+        bad = _first_non_finite_row(value)
+        if bad >= 0:
+            raise DatasetError(f"{source}: '{key}' contains NaN or infinite values (first at row {bad})")
+    for key, expected, actual in (
+        ("observation", observation_dim, out["observations"].shape[1]),
+        ("action", action_dim, out["actions"].shape[1]),
+    ):
+        if expected is not None and expected != actual:
+            raise DatasetError(f"{source}: {key} dimension is {actual}, but the task expects {expected}")
+    out["terminals"] = _flag(out["terminals"], "terminals", source)
+    out["timeouts"] = _flag(out["timeouts"], "timeouts", source)
+    return out
+
+
+def episodes_from_arrays(
+    arrays: Mapping[str, object],
+    *,
+    source: str = "arrays",
+    observation_dim: int | None = None,
+    action_dim: int | None = None,
+) -> TensorDict:
+    """Build the TED-layout transition TensorDict from DSRL-layout arrays (see module docstring).
+
+    Episodes end where ``terminals`` or ``timeouts`` is set. Rows after the last end flag form a final episode
+    cut short: it is kept, marked truncated at its last row, and a warning says so. Floating-point arrays that
+    are already float32 are not copied.
+
+    Examples:
+        >>> n = 5
+        >>> arrays = {"observations": np.arange(n, dtype=np.float32)[:, None],
+        ...           "next_observations": np.arange(1, n + 1, dtype=np.float32)[:, None],
+        ...           "actions": np.zeros((n, 1), np.float32), "rewards": np.ones(n, np.float32),
+        ...           "costs": np.zeros(n, np.float32),
+        ...           "terminals": np.array([0, 1, 0, 0, 0], np.float32),
+        ...           "timeouts": np.array([0, 0, 0, 0, 1], np.float32)}
+        >>> td = episodes_from_arrays(arrays)
+        >>> td["episode"].tolist(), td["is_init"].squeeze(-1).tolist()
+        ([0, 0, 1, 1, 1], [True, False, True, False, False])
+        >>> td["next", "terminated"].squeeze(-1).tolist(), td["next", "truncated"].squeeze(-1).tolist()
+        ([False, True, False, False, False], [False, False, False, False, True])
+    """
+    t = validate_arrays(arrays, source=source, observation_dim=observation_dim, action_dim=action_dim)
+    n = t["observations"].shape[0]
+    terminated = t["terminals"]
+    truncated = t["timeouts"] & ~terminated
+    ends = terminated | truncated
+    if not bool(ends[-1]):
+        last_end = int(ends.nonzero()[-1, 0]) if bool(ends.any()) else -1
+        warnings.warn(
+            f"{source}: the last {n - 1 - last_end} rows follow the last terminal/timeout flag; they are kept as "
+            "a final episode marked truncated at its last row",
+            stacklevel=2,
+        )
+        truncated = truncated.clone()
+        truncated[-1] = True
+        ends = terminated | truncated
+    episode = torch.zeros(n, dtype=torch.int64)
+    episode[1:] = torch.cumsum(ends[:-1].to(torch.int64), 0)
+    is_init = torch.ones(n, dtype=torch.bool)
+    is_init[1:] = ends[:-1]
+    return TensorDict(
+        {
+            "observation": t["observations"].to(torch.float32),
+            "action": t["actions"].to(torch.float32),
+            "episode": episode,
+            "is_init": is_init.unsqueeze(-1),
+            "next": {
+                "observation": t["next_observations"].to(torch.float32),
+                "reward": t["rewards"].to(torch.float32).unsqueeze(-1),
+                "cost": t["costs"].to(torch.float32).unsqueeze(-1),
+                "terminated": terminated.unsqueeze(-1),
+                "truncated": truncated.unsqueeze(-1),
+                "done": ends.unsqueeze(-1),
+            },
+        },
+        batch_size=[n],
+    )
+
+
+def select_episodes(episodes: TensorDict, ids) -> TensorDict:
+    """The transitions of the episodes ``ids`` (a copy, in dataset order).
+
+    Examples:
+        >>> td = TensorDict({"episode": torch.tensor([0, 0, 1, 2, 2])}, [5])
+        >>> select_episodes(td, [2, 0])["episode"].tolist()
+        [0, 0, 2, 2]
+    """
+    ids = torch.as_tensor(ids, dtype=torch.int64)
+    n_episodes = int(episodes["episode"].max()) + 1
+    if ids.numel() and (ids.min() < 0 or ids.max() >= n_episodes):
+        raise ValueError(f"episode ids must lie in [0, {n_episodes}), got {ids.tolist()[:10]}")
+    return episodes[torch.isin(episodes["episode"], ids)]

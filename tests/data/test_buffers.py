@@ -1,0 +1,108 @@
+"""DualDemoBuffers: per-role buffers, initial states, reproducible sampling, annotation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+
+from spoil_torchrl.data import (
+    DualDemoBuffers,
+    episodes_from_arrays,
+    label_ilsp,
+    load_episodes,
+    write_dsrl_file,
+)
+from spoil_torchrl.objectives import LogRatio
+from tests.data.helpers import make_arrays
+
+
+@pytest.fixture
+def episodes():
+    arrays = make_arrays(
+        lengths=(3, 2, 4, 1),
+        ends=("timeout", "terminal", "timeout", "terminal"),
+        costs=[0, 0, 0, 5, 5, 0, 0, 0, 0, 9],
+    )
+    return episodes_from_arrays(arrays)
+
+
+def _buffers(episodes, **kwargs):
+    roles = {"safe": [0, 2], "performant": [1], "unlabeled": [0, 1, 2, 3]}
+    kwargs.setdefault("batch_size", {"safe": 5, "performant": 3, "unlabeled": 7, "init": 2})
+    return DualDemoBuffers(episodes, roles, **kwargs)
+
+
+def test_roles_hold_their_episodes(episodes):
+    buffers = _buffers(episodes)
+    assert buffers.roles == ["safe", "performant", "unlabeled", "init"]
+    assert len(buffers["safe"]) == 7 and len(buffers["performant"]) == 2 and len(buffers["unlabeled"]) == 10
+    batch = buffers.sample()
+    assert set(batch["safe", "episode"].tolist()) <= {0, 2}
+    assert set(batch["performant", "episode"].tolist()) == {1}
+    assert batch["safe"].shape == (5,) and batch["unlabeled"].shape == (7,) and batch["init"].shape == (2,)
+
+
+def test_init_states_are_first_observations_of_unlabeled_episodes(episodes):
+    buffers = _buffers(episodes)
+    stored = buffers["init"].storage[: len(buffers["init"])]
+    assert stored["observation"][:, 0].tolist() == [0.0, 3.0, 5.0, 9.0]  # row index of each episode start
+    assert stored["episode"].tolist() == [0, 1, 2, 3]
+
+
+def test_sampling_is_reproducible_by_seed(episodes):
+    a, b = _buffers(episodes, seed=7).sample(), _buffers(episodes, seed=7).sample()
+    c = _buffers(episodes, seed=8).sample()
+    assert (a["unlabeled", "observation"] == b["unlabeled", "observation"]).all()
+    assert not all((a[r, "observation"] == c[r, "observation"]).all() for r in ("safe", "unlabeled"))
+
+
+def test_all_episodes_role_shares_the_dataset(episodes):
+    buffers = _buffers(episodes)
+    storage = buffers["unlabeled"].storage._storage
+    assert storage["observation"].data_ptr() == episodes["observation"].data_ptr()
+
+
+def test_truncated_steps_keep_their_next_observation(episodes):
+    buffers = _buffers(episodes, batch_size=64)
+    batch = buffers.sample()
+    unl = batch["unlabeled"]
+    trunc = unl["next", "truncated"].squeeze(-1)
+    assert trunc.any()
+    torch.testing.assert_close(unl["next", "observation"][trunc], unl["observation"][trunc] + 1)
+
+
+def test_annotate_writes_once_into_the_role_storage(episodes):
+    buffers = _buffers(episodes)
+    disc = TensorDictModule(
+        lambda o, a: o[..., :1] * 2, in_keys=["observation", "action"], out_keys=["logit"]
+    )
+    buffers.annotate("unlabeled", LogRatio(disc), chunk_size=3)
+    batch = buffers.sample()
+    torch.testing.assert_close(
+        batch["unlabeled", "log_ratio_performant"], batch["unlabeled", "observation"][:, :1] * 2
+    )
+
+
+def test_memmap_copies_of_role_subsets(episodes, tmp_path):
+    buffers = _buffers(episodes, memmap_dir=tmp_path)
+    assert buffers["safe"].storage._storage.is_memmap()
+    assert (tmp_path / "safe").exists()
+    assert buffers.sample()["safe"].shape == (5,)
+
+
+def test_memmap_loaded_dataset_stays_memory_mapped(tmp_path):
+    path = write_dsrl_file(tmp_path / "d.hdf5", make_arrays())
+    episodes = load_episodes(f"file:{path}", memmap_dir=tmp_path / "mm")
+    labels = label_ilsp(episodes, cost_threshold=1.0)
+    buffers = DualDemoBuffers(episodes, {"unlabeled": labels["unlabeled"]}, batch_size=4)
+    assert type(buffers["unlabeled"].storage._storage["observation"]).__name__ == "MemoryMappedTensor"
+
+
+def test_bad_roles_raise(episodes):
+    with pytest.raises(ValueError, match="reserved"):
+        DualDemoBuffers(episodes, {"init": [0], "unlabeled": [0]})
+    with pytest.raises(ValueError, match="init_role"):
+        DualDemoBuffers(episodes, {"safe": [0]})
+    with pytest.raises(ValueError, match="episode ids must lie in"):
+        DualDemoBuffers(episodes, {"safe": [9], "unlabeled": [0]})
