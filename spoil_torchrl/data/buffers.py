@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import torch
@@ -107,7 +107,36 @@ class DualDemoBuffers:
         """One batch per role, ``TensorDict({role: batch, ..., "init": batch}, batch_size=[])``."""
         return TensorDict({role: buffer.sample() for role, buffer in self.buffers.items()}, batch_size=[])
 
-    def annotate(self, role: str, module: TensorDictModuleBase, *, chunk_size: int = 65536) -> None:
-        """Write ``module``'s outputs (e.g. :class:`~spoil_torchrl.objectives.LogRatio`,
-        :class:`~spoil_torchrl.objectives.SupportEstimator`) into ``role``'s storage once, in chunks."""
+    def annotate(
+        self,
+        role: str,
+        module: TensorDictModuleBase | str,
+        fn: Callable[[TensorDict], torch.Tensor] | None = None,
+        *,
+        chunk_size: int = 65536,
+    ) -> None:
+        """Write derived keys into ``role``'s storage once, in chunks.
+
+        Either ``annotate(role, module)`` with a module that writes its ``out_keys`` (e.g.
+        :class:`~spoil_torchrl.objectives.LogRatio`, :class:`~spoil_torchrl.objectives.SupportEstimator`), or
+        ``annotate(role, key, fn)`` with ``fn`` mapping a chunk of stored transitions to the values of ``key``.
+        """
+        if isinstance(module, str):
+            if fn is None:
+                raise TypeError("annotate(role, key, fn) needs fn")
+            module = _KeyFunction(module, fn, self.buffers[role].storage)
         annotate(self.buffers[role], module, chunk_size=chunk_size)
+
+
+class _KeyFunction(TensorDictModuleBase):
+    """Adapts ``fn(chunk) -> tensor`` to the module interface :func:`annotate` expects."""
+
+    def __init__(self, key: str, fn: Callable[[TensorDict], torch.Tensor], storage) -> None:
+        super().__init__()
+        self.fn = fn
+        self.in_keys = [k for k in storage._storage.keys(True, True)]
+        self.out_keys = [key]
+
+    def forward(self, tensordict: TensorDict) -> TensorDict:
+        tensordict.set(self.out_keys[0], self.fn(tensordict))
+        return tensordict

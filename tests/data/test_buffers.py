@@ -106,3 +106,12 @@ def test_bad_roles_raise(episodes):
         DualDemoBuffers(episodes, {"safe": [0]})
     with pytest.raises(ValueError, match="episode ids must lie in"):
         DualDemoBuffers(episodes, {"safe": [9], "unlabeled": [0]})
+
+
+def test_annotate_with_a_key_and_a_function(episodes):
+    buffers = _buffers(episodes)
+    buffers.annotate("safe", "double_cost", lambda td: 2 * td["next", "cost"], chunk_size=2)
+    stored = buffers["safe"].storage[: len(buffers["safe"])]
+    torch.testing.assert_close(stored["double_cost"], 2 * stored["next", "cost"])
+    with pytest.raises(TypeError, match="needs fn"):
+        buffers.annotate("safe", "x")
