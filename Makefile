@@ -4,6 +4,9 @@
 PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
+# Extras installed by the set-up; EXTRAS=dev skips the simulators (their tests then skip).
+EXTRAS ?= dev,safety
+SAFETY_GYMNASIUM ?= safety-gymnasium==1.0.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.spoil_torchrl-installed
 ARGS ?=
@@ -15,7 +18,9 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml Makefile
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check $(TORCH_SPEC)
-	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[dev]"
+	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[$(EXTRAS)]"
+	@case ",$(EXTRAS)," in *,safety,*) \
+	  $(PY) -m pip install --quiet --disable-pip-version-check --no-deps $(SAFETY_GYMNASIUM);; esac
 	@touch $(STAMP)
 
 # The main job. Until the DSRL recipe lands (issue 6) this is the tabular end-to-end run.

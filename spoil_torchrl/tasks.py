@@ -469,3 +469,106 @@ def get_dsrl_dataset(dataset_id: str) -> DSRLDataset:
     close = difflib.get_close_matches(_match_key(dataset_id), list(by_key), n=3, cutoff=0.0)
     suggestion = ", ".join(repr(by_key[c]) for c in close)
     raise UnknownDatasetError(f"unknown DSRL dataset {dataset_id!r}; did you mean {suggestion}?")
+
+
+@dataclass(frozen=True)
+class EnvTask:
+    """A Safety-Gymnasium task the project simulates (collection, experts, evaluation).
+
+    Attributes:
+        env_id: Safety-Gymnasium id, e.g. ``"SafetyPointCircle1-v0"``.
+        episode_length: time limit T of the registered environment.
+        cost_limit: episode-cost limit of the constrained experts (paper Table G: 25).
+        observation_dim, action_dim: sizes of the flat observation and action.
+        cost_rule: the task's cost in words (checked by the tests).
+        velocity_threshold: speed above which a velocity task costs 1 (``None`` for navigation tasks).
+        dsrl_id: the matching DSRL dataset, for its normalisation constants.
+    """
+
+    env_id: str
+    episode_length: int
+    cost_limit: float
+    observation_dim: int
+    action_dim: int
+    cost_rule: str
+    velocity_threshold: float | None = None
+    dsrl_id: str | None = None
+
+
+# Sizes and cost rules: REFERENCES.md section 5 (measured with safety-gymnasium 1.0.0); cost limit: Table G.
+ENV_TASKS: dict[str, EnvTask] = {
+    t.env_id: t
+    for t in [
+        EnvTask(
+            "SafetyPointCircle1-v0",
+            500,
+            25.0,
+            28,
+            2,
+            "cost 1 when |x| > 1.125",
+            dsrl_id="OfflinePointCircle1Gymnasium-v0",
+        ),
+        EnvTask(
+            "SafetyPointCircle2-v0",
+            500,
+            25.0,
+            28,
+            2,
+            "cost 1 when |x| > 1.125 or |y| > 1.125",
+            dsrl_id="OfflinePointCircle2Gymnasium-v0",
+        ),
+        EnvTask(
+            "SafetyHopperVelocity-v1",
+            1000,
+            25.0,
+            11,
+            3,
+            "cost 1 when x-velocity > 0.7402",
+            0.7402,
+            "OfflineHopperVelocityGymnasium-v1",
+        ),
+        EnvTask(
+            "SafetyHalfCheetahVelocity-v1",
+            1000,
+            25.0,
+            17,
+            6,
+            "cost 1 when x-velocity > 3.2096",
+            3.2096,
+            "OfflineHalfCheetahVelocityGymnasium-v1",
+        ),
+        EnvTask(
+            "SafetyWalker2dVelocity-v1",
+            1000,
+            25.0,
+            17,
+            6,
+            "cost 1 when x-velocity > 2.3415",
+            2.3415,
+            "OfflineWalker2dVelocityGymnasium-v1",
+        ),
+        EnvTask(
+            "SafetyAntVelocity-v1",
+            1000,
+            25.0,
+            27,
+            8,
+            "cost 1 when planar speed > 2.6222",
+            2.6222,
+            "OfflineAntVelocityGymnasium-v1",
+        ),
+    ]
+}
+
+
+def get_env_task(env_id: str) -> EnvTask:
+    """Look up a simulated task; an unknown id raises with the closest ids.
+
+    Examples:
+        >>> get_env_task("SafetyPointCircle1-v0").episode_length
+        500
+    """
+    if env_id in ENV_TASKS:
+        return ENV_TASKS[env_id]
+    close = difflib.get_close_matches(env_id, list(ENV_TASKS), n=3, cutoff=0.0)
+    raise UnknownDatasetError(f"unknown task {env_id!r}; did you mean {', '.join(map(repr, close))}?")

@@ -48,6 +48,13 @@ def _seed():
     torch.manual_seed(0)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _one_thread():
+    # Small networks gain nothing from intra-op threads, and spinning threads slow everything down badly when
+    # another process shares the 2 cores.
+    torch.set_num_threads(1)
+
+
 @pytest.fixture
 def batch() -> TensorDict:
     return dual_batch()

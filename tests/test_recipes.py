@@ -34,3 +34,27 @@ def test_tabular_recipe_end_to_end(tmp_path):
         assert result["policies"]["BC (d_P)"]["cost"] > 0.05  # the performant data are unsafe
         assert result["tv_bc_vs_exact"] > 0.2
     assert list(tmp_path.rglob("*.csv")), "the TorchRL CSV logger wrote nothing"
+
+
+def test_train_experts_recipe_tiny(tmp_path):
+    import importlib.util
+
+    import pytest
+
+    if importlib.util.find_spec("safety_gymnasium") is None:
+        pytest.skip("safety-gymnasium not installed")
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "train_experts.py"),
+        "ppo.total_frames=500",
+        "ppo.frames_per_batch=500",
+        "ppo.minibatch_size=250",
+        "ppo.epochs=1",
+        "ppo.lagrangian=true",
+        "progress=false",
+        f"hydra.run.dir={tmp_path}",
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "SafetyPointCircle1-v0: 500 frames" in proc.stdout
+    assert list(tmp_path.glob("ckpt_*.pt"))

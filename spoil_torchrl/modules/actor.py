@@ -93,6 +93,7 @@ def make_actor(
     action_high: float | torch.Tensor = 1.0,
     observation_key: str = "observation",
     action_key: str = "action",
+    return_log_prob: bool = False,
 ) -> ProbabilisticActor:
     """Build the policy network pi(a|s).
 
@@ -103,6 +104,7 @@ def make_actor(
         distribution: one of ``"tanh_normal"``, ``"normal"``, ``"categorical"``.
         action_low, action_high: action bounds of the tanh-squashed distribution.
         observation_key, action_key: tensordict keys read and written by the actor.
+        return_log_prob: also write the sampled action's log-probability (on-policy learners such as PPO).
 
     Returns:
         a :class:`~torchrl.modules.ProbabilisticActor`; ``actor.get_dist(td)`` gives pi(.|s).
@@ -135,6 +137,7 @@ def make_actor(
             in_keys=["logits"],
             out_keys=[action_key],
             distribution_class=OneHotCategorical,
+            return_log_prob=return_log_prob,
         )
     net = MLP(
         in_features=observation_dim,
@@ -157,4 +160,5 @@ def make_actor(
         out_keys=[action_key],
         distribution_class=dist_class,
         distribution_kwargs=dist_kwargs,
+        return_log_prob=return_log_prob,
     )

@@ -25,7 +25,6 @@ TV_TOLERANCE = 0.05
 
 @pytest.mark.parametrize("seed", [0, 1, 3])
 def test_neural_spoildice_matches_the_exact_solution(seed):
-    torch.set_num_threads(2)
     problem = random_dual_demo_problem(seed=seed, slip=0.1)
     exact = solve_spoildice(problem.mdp, problem.d_P, problem.d_S)
     assert np.abs(flow_residual(problem.mdp, exact)).max() < 1e-6
@@ -44,7 +43,6 @@ def test_neural_spoildice_matches_the_exact_solution(seed):
 
 @pytest.mark.xfail(strict=True, reason="one-sample exp(gamma nu(s')) bias, see the module docstring")
 def test_known_limitation_seed_2_stays_off():
-    torch.set_num_threads(2)
     problem = random_dual_demo_problem(seed=2, slip=0.1)
     exact = solve_spoildice(problem.mdp, problem.d_P, problem.d_S)
     result = train_tabular_spoildice(problem, TabularTrainingConfig(seed=2))

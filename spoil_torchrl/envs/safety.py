@@ -1,0 +1,72 @@
+"""TorchRL environments for the Safety-Gymnasium tasks, with the cost at ``("next", "cost")``."""
+
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+import torch
+from torchrl.data import Composite, Unbounded
+from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv, default_info_dict_reader
+
+from spoil_torchrl.envs.compat import disable_fast_reset, enable_fast_reset, import_safety_gymnasium
+from spoil_torchrl.tasks import get_env_task
+
+
+class CostInInfo(gymnasium.Wrapper):
+    """Turns Safety-Gymnasium's 6-tuple ``step`` into gymnasium's 5-tuple, with the cost as ``info["cost"]``
+    (a float32 array of shape ``(1,)``, the shape of TorchRL's reward). Actions are passed as float64 arrays
+    (safety-gymnasium's ``step(list)`` fails under NumPy 2)."""
+
+    def step(self, action):
+        obs, reward, cost, terminated, truncated, info = self.env.step(np.asarray(action, dtype=np.float64))
+        info = dict(info)
+        info["cost"] = np.array([cost], dtype=np.float32)
+        return obs, reward, terminated, truncated, info
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        info = dict(info)
+        info["cost"] = np.zeros(1, dtype=np.float32)
+        return obs, info
+
+
+def make_safety_gymnasium(env_id: str, *, fast_reset: bool = True, **kwargs) -> gymnasium.Env:
+    """The raw Safety-Gymnasium environment wrapped in :class:`CostInInfo` (a plain gymnasium env).
+
+    ``fast_reset`` switches the skybox patch on or off for the environments built from now on.
+
+    Use it for NumPy-speed loops (collection, evaluation); :func:`make_env` wraps it for TorchRL.
+    """
+    task = get_env_task(env_id)
+    safety_gymnasium = import_safety_gymnasium()
+    (enable_fast_reset if fast_reset else disable_fast_reset)()
+    return CostInInfo(safety_gymnasium.make(task.env_id, **kwargs))
+
+
+def make_env(
+    env_id: str, *, seed: int | None = None, fast_reset: bool = True, device="cpu"
+) -> TransformedEnv:
+    """A TorchRL environment for a task of :data:`spoil_torchrl.tasks.ENV_TASKS`.
+
+    Observations are float32; ``("next", "cost")`` is float32 with a trailing dim of 1, like the reward.
+    ``fast_reset`` swaps the navigation tasks' skybox texture (rendering only, see
+    :mod:`spoil_torchrl.envs.compat`).
+
+    Examples:
+        >>> env = make_env("SafetyPointCircle1-v0", seed=0)  # doctest: +SKIP
+        >>> env.rollout(3)["next", "cost"].shape  # doctest: +SKIP
+        torch.Size([3, 1])
+    """
+    task = get_env_task(env_id)
+    env = GymWrapper(make_safety_gymnasium(env_id, fast_reset=fast_reset), device=device)
+    spec = Composite(cost=Unbounded(shape=(1,), dtype=torch.float32, device=device), shape=[])
+    env.set_info_dict_reader(default_info_dict_reader(["cost"], spec=spec))
+    env = TransformedEnv(env, DoubleToFloat())
+    if seed is not None:
+        env.set_seed(seed)
+    if env.observation_spec["observation"].shape[-1] != task.observation_dim:
+        raise RuntimeError(
+            f"{env_id}: observation size {env.observation_spec['observation'].shape[-1]} differs from the task "
+            f"table's {task.observation_dim}; the installed safety-gymnasium is not the expected 1.0.0"
+        )
+    return env
