@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from spoil_torchrl.tabular import flow_residual, solve_spoildice, total_variation
 from spoil_torchrl.tabular.neural import TabularTrainingConfig, train_tabular_spoildice
