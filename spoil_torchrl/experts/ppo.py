@@ -1,9 +1,12 @@
 """PPO and PPO-Lagrangian experts from TorchRL pieces, used to make demonstration data (paper F.2, Table G).
 
 PPO-Lagrangian (Ray et al., 2019) adds a cost critic, a cost advantage (GAE on ``("next", "cost")``) and a
-multiplier :math:`\\lambda \\ge 0` on the episode-cost limit: the policy maximises the surrogate of
-:math:`(A_r - \\lambda A_c)/(1 + \\lambda)` and :math:`\\lambda \\leftarrow \\max(0, \\lambda + \\eta_\\lambda
-(\\bar C - d))` after every batch, with :math:`\\bar C` the mean cost of the episodes finished in it. With
+multiplier :math:`\\lambda \\ge 0` on the episode-cost limit :math:`d`: the policy maximises the surrogate of
+:math:`(A_r - \\lambda A_c)/(1 + \\lambda)`, and after every batch :math:`\\lambda` takes one Adam step on
+:math:`-\\lambda (\\bar C - d)` (then is clipped at 0), with :math:`\\bar C` the mean cost of the episodes
+finished in the batch. The Adam step (OmniSafe's choice) moves :math:`\\lambda` by about ``lagrange_lr`` per
+batch whatever the size of the violation; a plain gradient step with episode costs in the hundreds makes
+:math:`\\lambda` explode (measured: 114 after 14 batches with rate 0.05) and the policy then ignores reward. With
 ``lagrangian=False`` it is plain PPO. Checkpoints (actor weights plus the batch's mean episode return and cost)
 are written periodically, so the four policy types of the paper can be picked from them afterwards.
 """
@@ -51,7 +54,7 @@ class PPOConfig:
     hidden_cells: tuple[int, ...] = (64, 64)
     lagrangian: bool = False
     cost_limit: float = 25.0
-    lagrange_lr: float = 0.05
+    lagrange_lr: float = 0.035
     lagrange_init: float = 0.0
     checkpoint_every: int = 5  # batches
     seed: int = 0
@@ -155,6 +158,8 @@ def train_ppo(
         sampler=SamplerWithoutReplacement(),
         batch_size=config.minibatch_size,
     )
+    lagrange_param = nn.Parameter(torch.tensor(float(config.lagrange_init)))
+    lagrange_optim = torch.optim.Adam([lagrange_param], lr=config.lagrange_lr)
     lagrange = config.lagrange_init
     log: list[dict] = []
     frames, start = 0, time.perf_counter()
@@ -172,7 +177,12 @@ def train_ppo(
             reward_gae(batch)
             cost_gae(batch)
         if config.lagrangian and not math.isnan(last_cost):
-            lagrange = max(0.0, lagrange + config.lagrange_lr * (last_cost - config.cost_limit))
+            lagrange_optim.zero_grad()
+            (-lagrange_param * (last_cost - config.cost_limit)).backward()
+            lagrange_optim.step()
+            with torch.no_grad():
+                lagrange_param.clamp_(min=0.0)
+            lagrange = float(lagrange_param)
         advantage = batch["advantage"]
         if config.lagrangian:
             advantage = (advantage - lagrange * batch["cost_advantage"]) / (1.0 + lagrange)
