@@ -98,9 +98,12 @@ def _kl_flow_dual(mdp: TabularCMDP, d_ref: np.ndarray, pairs: np.ndarray, states
         hess = (b.T * d) @ b + 1e-14 * np.eye(len(idx_s))
         step = -np.linalg.solve(hess, grad)
         t = 1.0
+        # Near the optimum the predicted decrease falls below the objective's round-off; without this slack
+        # the Armijo test then rejects every step and Newton stalls a few digits short of FLOW_TOL.
+        slack = 1e-12 * (abs(value) + 1.0)
         while True:
             new_value, new_log_d = objective(nu + t * step)
-            if new_value <= value + 1e-4 * t * (grad @ step) or t < 1e-12:
+            if new_value <= value + 1e-4 * t * (grad @ step) + slack or t < 1e-12:
                 break
             t *= 0.5
         nu, value, log_d = nu + t * step, new_value, new_log_d
@@ -157,3 +160,37 @@ def solve_spoildice(mdp: TabularCMDP, d_P, d_S, threshold: float = 0.0) -> np.nd
     if threshold < 0:
         raise ValueError(f"threshold must be >= 0, got {threshold}")
     return solve_kl_projection(mdp, d_P, d_S > threshold)
+
+
+def solve_spoildice_lagrangian(
+    mdp: TabularCMDP, d_P, d_S, threshold: float = 0.0, *, lagrange: float
+) -> np.ndarray:
+    """SpoilDICE at a *fixed* support multiplier :math:`\\lambda` (Eq. 5-6 before the minimisation over
+    :math:`\\lambda`): :math:`\\arg\\min_d D_{KL}(d \\| d_P) - \\lambda \\sum_{s,a} \\mathbb{1}_{d_S}(s,a) d(s,a)`
+    over occupancies, with :math:`\\mathbb{1}_{d_S} = [d_S > threshold]`.
+
+    Since :math:`\\sum d = 1`, the penalty is :math:`\\lambda` times the mass ``d`` puts off the support, and the
+    objective equals :math:`D_{KL}(d \\| q) + const` with :math:`q \\propto d_P \\exp(\\lambda(\\mathbb{1}_{d_S} - 1))`:
+    off-support pairs keep their ``d_P`` mass scaled by :math:`e^{-\\lambda}`. As :math:`\\lambda \\to \\infty`
+    this tends to :func:`solve_spoildice` whenever Eq. (4) is feasible; unlike Eq. (4) it still has a solution
+    when the support violates the feasibility assumption (Eq. 14), e.g. when slips reach states at which every
+    action of ``supp(d_P)`` falls below the threshold. Off-support mass is then traded against the KL at the
+    exchange rate :math:`\\lambda` (what a finite learned :math:`\\lambda` does in the neural Algorithm 1).
+
+    Examples:
+        >>> mdp = TabularCMDP(np.ones((1, 2, 1)), np.zeros((1, 2)), np.zeros((1, 2)), [1.0], 0.9)
+        >>> d = solve_spoildice_lagrangian(mdp, [[0.5, 0.5]], [[1.0, 0.0]], lagrange=np.log(3.0))
+        >>> d.round(6).tolist()  # the off-support action keeps 1/3 of its d_P weight
+        [[0.75, 0.25]]
+    """
+    d_P = check_distribution(mdp, d_P, "d_P")
+    d_S = check_distribution(mdp, d_S, "d_S")
+    if threshold < 0:
+        raise ValueError(f"threshold must be >= 0, got {threshold}")
+    if not np.isfinite(lagrange) or lagrange < 0:
+        raise ValueError(f"lagrange must be a finite number >= 0, got {lagrange}")
+    with np.errstate(divide="ignore"):
+        log_q = np.log(d_P) + lagrange * ((d_S > threshold) - 1.0)
+    log_q = log_q - log_q.max()
+    q = np.exp(log_q)
+    return solve_kl_projection(mdp, q / q.sum(), np.ones_like(q, dtype=bool))

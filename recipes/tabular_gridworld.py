@@ -1,0 +1,364 @@
+"""The tabular gridworld experiment (section 5.1, appendix E): Figure 3b and Figure A with exact solvers.
+
+For each seed (one random zone layout): solve d*_M and d*_Mc by linear programming, build d_P (safeness xi)
+and d_S (performance o) at each quality level, solve every Table B objective exactly for each hyper-parameter,
+evaluate the extracted policies exactly, and keep per method the highest-return feasible policy, else the
+lowest-cost one (appendix E.2). Writes ``results.json``, ``results.md`` and two PNGs into the Hydra run dir.
+
+    python recipes/tabular_gridworld.py seeds=5 grid.cost_model=transition
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import hydra
+import matplotlib
+import numpy as np
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from spoil_torchrl.tabular import (
+    InfeasibleProblemError,
+    evaluate,
+    solve_bc,
+    solve_demodice,
+    solve_fbc,
+    solve_spoildice,
+    solve_spoildice_lagrangian,
+)
+from spoil_torchrl.tabular.gridworld import (
+    make_demonstrators,
+    make_gridworld,
+    performant_distribution,
+    safe_distribution,
+)
+from spoil_torchrl.tabular.protocol import (
+    mean_and_standard_error,
+    normalised_cost,
+    normalised_return,
+    select_candidate,
+)
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the Agg backend)
+
+STRICT = "SpoilDICE (Eq. 4)"
+SWEEPS = {
+    "safeness": "d_P safeness xi varied (d_S performance o fixed)",
+    "performance": "d_S performance o varied (d_P safeness xi fixed)",
+}
+
+
+def seed_list(seeds) -> list[int]:
+    """``seeds`` is an int n (seeds 0 .. n-1) or a list of seeds."""
+    if isinstance(seeds, int):
+        return list(range(seeds))
+    return [int(s) for s in seeds]
+
+
+def problems(cfg: DictConfig) -> list[tuple[str, float, float, float]]:
+    """(sweep, level, xi, o) for both panels of Figure 3b."""
+    fixed = float(cfg.fixed_level)
+    out = [("safeness", float(q), float(q), fixed) for q in cfg.levels]
+    return out + [("performance", float(q), fixed, float(q)) for q in cfg.levels]
+
+
+def method_names(cfg: DictConfig) -> list[str]:
+    names = ["BC", "FBC", "DemoDICE", STRICT]
+    lam = lagrange(cfg)
+    return names + ([f"SpoilDICE (Eq. 6, lambda={lam:g})"] if lam is not None else [])
+
+
+def lagrange(cfg: DictConfig) -> float | None:
+    value = cfg.methods.spoildice_lagrange
+    return None if value is None else float(value)
+
+
+def solve_all(cfg: DictConfig, mdp, d_P: np.ndarray, d_S: np.ndarray) -> dict[str, list[dict]]:
+    """Every method at every hyper-parameter: one candidate dict per solve (``solved=False`` if infeasible)."""
+    thresholds = [float(t) for t in cfg.methods.thresholds]
+    solvers = {
+        "BC": [("none", None, lambda _: solve_bc(d_P))],
+        "FBC": [("threshold", t, lambda t: solve_fbc(d_P, d_S, t)) for t in thresholds],
+        "DemoDICE": [
+            ("alpha", float(a), lambda a: solve_demodice(mdp, d_P, d_S, a))
+            for a in cfg.methods.demodice_alphas
+        ],
+        STRICT: [("threshold", t, lambda t: solve_spoildice(mdp, d_P, d_S, t)) for t in thresholds],
+    }
+    lam = lagrange(cfg)
+    if lam is not None:
+        solvers[method_names(cfg)[-1]] = [
+            ("threshold", t, lambda t: solve_spoildice_lagrangian(mdp, d_P, d_S, t, lagrange=lam))
+            for t in thresholds
+        ]
+    out: dict[str, list[dict]] = {}
+    for method, grid in solvers.items():
+        out[method] = []
+        cache: dict[bytes, tuple[float, float]] = {}  # same support -> same solution
+        for name, value, solve in grid:
+            key = (d_S > value).tobytes() if name == "threshold" else None
+            try:
+                if key is not None and key in cache:
+                    ret, cost = cache[key]
+                else:
+                    ret, cost = evaluate(mdp, solve(value))
+                    if key is not None:
+                        cache[key] = (ret, cost)
+            except InfeasibleProblemError:
+                out[method].append({name: value, "solved": False})
+                continue
+            out[method].append({name: value, "solved": True, "return": ret, "cost": cost})
+    return out
+
+
+def run_seed(cfg: DictConfig, seed: int) -> dict:
+    grid = make_gridworld(seed, **OmegaConf.to_container(cfg.grid))
+    mdp, limit = grid.mdp, grid.cost_limit
+    demo = make_demonstrators(grid)
+
+    def normalise(ret: float, cost: float) -> dict:
+        return {
+            "normalised_return": normalised_return(ret, demo.random_return, demo.optimal_return),
+            "normalised_cost": normalised_cost(cost, limit),
+        }
+
+    def j(d):
+        return float((d * mdp.reward).sum()), float((d * mdp.cost).sum())
+
+    result = {
+        "seed": seed,
+        "zone_centers": list(grid.zone_centers),
+        "references": {
+            name: {"return": r, "cost": c, **normalise(r, c)}
+            for name, (r, c) in {
+                "d*_M (unconstrained optimum)": j(demo.d_mdp),
+                "d*_Mc (CMDP optimum)": j(demo.d_cmdp),
+                "d_0 (safe random-like, o = 0)": j(demo.d_random),
+            }.items()
+        },
+        "problems": [],
+    }
+    solved: dict[tuple[float, float], dict] = {}
+    for sweep, level, xi, o in problems(cfg):
+        if (xi, o) not in solved:
+            d_P = performant_distribution(demo.d_mdp, demo.d_cmdp, xi)
+            d_S = safe_distribution(demo.d_cmdp, demo.d_random, o)
+            candidates = solve_all(cfg, mdp, d_P, d_S)
+            selected = {}
+            for method, cands in candidates.items():
+                usable = [c for c in cands if c["solved"]]
+                if not usable:  # e.g. SpoilDICE when every threshold violates Eq. (14)
+                    selected[method] = None
+                    continue
+                chosen = select_candidate(usable, limit)
+                selected[method] = {**chosen, **normalise(chosen["return"], chosen["cost"])}
+            solved[(xi, o)] = {"selected": selected, "candidates": candidates}
+        result["problems"].append({"sweep": sweep, "level": level, "xi": xi, "o": o, **solved[(xi, o)]})
+    return result
+
+
+def summarise(cfg: DictConfig, results: list[dict]) -> dict:
+    """summary[sweep][level][method] = mean and standard error over seeds of the selected policies."""
+    summary: dict = {}
+    for sweep, level, _, _ in problems(cfg):
+        row = {}
+        for method in method_names(cfg):
+            picked = [
+                p["selected"][method]
+                for r in results
+                for p in r["problems"]
+                if p["sweep"] == sweep and p["level"] == level and p["selected"][method] is not None
+            ]
+            if not picked:
+                row[method] = {"n": 0}
+                continue
+            row[method] = {
+                "n": len(picked),
+                "return": mean_and_standard_error([p["normalised_return"] for p in picked]),
+                "cost": mean_and_standard_error([p["normalised_cost"] for p in picked]),
+                "feasible": float(np.mean([p["feasible"] for p in picked])),
+            }
+        summary.setdefault(sweep, {})[level] = row
+    return summary
+
+
+def solvability(results: list[dict], method: str) -> dict[str, float]:
+    """Share of problems (seeds x quality pairs) for which ``method`` had a solution at each hyper-parameter."""
+    counts: dict[str, list[bool]] = {}
+    for r in results:
+        seen = set()
+        for p in r["problems"]:
+            if (p["xi"], p["o"]) in seen:
+                continue
+            seen.add((p["xi"], p["o"]))
+            for c in p["candidates"][method]:
+                counts.setdefault(f"{c['threshold']:g}", []).append(c["solved"])
+    return {t: float(np.mean(v)) for t, v in counts.items()}
+
+
+def reference_summary(results: list[dict]) -> dict:
+    names = list(results[0]["references"])
+    out = {}
+    for name in names:
+        rows = [r["references"][name] for r in results]
+        out[name] = {
+            "return": mean_and_standard_error([x["normalised_return"] for x in rows]),
+            "cost": mean_and_standard_error([x["normalised_cost"] for x in rows]),
+            "feasible": float(np.mean([x["normalised_cost"] <= 1.0 + 1e-6 for x in rows])),
+            "max_cost": float(max(x["normalised_cost"] for x in rows)),
+        }
+    return out
+
+
+def _cell(entry: dict) -> str:
+    if entry["n"] == 0:
+        return "no solution"
+    (r, r_se), (c, c_se) = entry["return"], entry["cost"]
+    return f"{r:.3f} ± {r_se:.3f} / {c:.2f} ± {c_se:.2f} ({100 * entry['feasible']:.0f}%)"
+
+
+def markdown(cfg: DictConfig, summary: dict, references: dict, solvable: dict, n_seeds: int) -> str:
+    levels = [float(q) for q in cfg.levels]
+    lines = [
+        f"Normalised return (0 = uniform random, 1 = CMDP optimum) / normalised cost (J(pi; c) / delta_c), "
+        f"mean ± standard error over {n_seeds} seeds, and the share of seeds whose selected policy is feasible "
+        f"(cost <= delta_c). Cost model: `{cfg.grid.cost_model}`; the fixed quality is {cfg.fixed_level:g}.",
+        "",
+    ]
+    for sweep, title in SWEEPS.items():
+        lines += [f"**{title}**", ""]
+        lines.append("| method | " + " | ".join(f"{100 * q:g}%" for q in levels) + " |")
+        lines.append("|---" * (len(levels) + 1) + "|")
+        for method in method_names(cfg):
+            cells = [_cell(summary[sweep][q][method]) for q in levels]
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += [
+        "**Reference occupancies**",
+        "",
+        "| occupancy | return | cost | feasible | max cost |",
+        "|---|---|---|---|---|",
+    ]
+    for name, ref in references.items():
+        (r, r_se), (c, c_se) = ref["return"], ref["cost"]
+        lines.append(
+            f"| {name} | {r:.3f} ± {r_se:.3f} | {c:.3f} ± {c_se:.3f} | {100 * ref['feasible']:.0f}% "
+            f"| {ref['max_cost']:.3f} |"
+        )
+    lines += [
+        "",
+        f"Share of problems where {STRICT} has a solution (the support admits an occupancy, Eq. 14), per "
+        "threshold: " + ", ".join(f"{t}: {100 * v:.0f}%" for t, v in solvable.items()),
+    ]
+    return "\n".join(lines)
+
+
+STYLE = {
+    "BC": ("tab:gray", "s"),
+    "FBC": ("tab:orange", "^"),
+    "DemoDICE": ("tab:blue", "D"),
+    STRICT: ("tab:olive", "v"),
+}
+
+
+def _style(method: str) -> tuple[str, str]:
+    return STYLE.get(method, ("tab:green", "o"))
+
+
+def plot_tradeoff(cfg: DictConfig, summary: dict, path: Path) -> None:
+    """Figure 3b: normalised cost (x) against normalised return (y), one marker per method and level."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    for ax, (sweep, title) in zip(axes, SWEEPS.items(), strict=True):
+        ax.axvspan(0, 1, color="tab:green", alpha=0.08, label="feasible (cost <= delta_c)")
+        for method in method_names(cfg):
+            color, marker = _style(method)
+            pts = [(q, summary[sweep][q][method]) for q in summary[sweep] if summary[sweep][q][method]["n"]]
+            xs = [e["cost"][0] for _, e in pts]
+            ys = [e["return"][0] for _, e in pts]
+            ax.plot(xs, ys, color=color, marker=marker, linestyle=":", label=method, alpha=0.85)
+            for (q, _), x, y in zip(pts, xs, ys, strict=True):
+                ax.annotate(
+                    f"{100 * q:g}%",
+                    (x, y),
+                    textcoords="offset points",
+                    xytext=(4, 4),
+                    fontsize=7,
+                    color=color,
+                )
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.set_xlim(left=0)
+        ax.set_xlabel("normalised cost  J(pi; c) / delta_c")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("normalised return (0 random, 1 CMDP optimum)")
+    axes[1].legend(fontsize=8, loc="lower right")
+    fig.suptitle(f"Constrained gridworld, exact solutions (cost model: {cfg.grid.cost_model})", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_quality_curves(cfg: DictConfig, summary: dict, path: Path) -> None:
+    """Figure A: normalised return (top) and cost (bottom) against the quality level, for both sweeps."""
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    for col, (sweep, title) in enumerate(SWEEPS.items()):
+        levels = sorted(summary[sweep])
+        for row, key in enumerate(("return", "cost")):
+            ax = axes[row, col]
+            for method in method_names(cfg):
+                color, marker = _style(method)
+                pts = [(q, summary[sweep][q][method]) for q in levels if summary[sweep][q][method]["n"]]
+                qs = [100 * q for q, _ in pts]
+                mean = np.array([e[key][0] for _, e in pts])
+                se = np.array([e[key][1] for _, e in pts])
+                ax.errorbar(qs, mean, yerr=se, color=color, marker=marker, capsize=3, label=method)
+            if key == "cost":
+                ax.axhline(1.0, color="k", linestyle="--", linewidth=0.8)
+                ax.set_yscale("symlog", linthresh=1.0)
+                ax.set_ylim(bottom=0)
+                ax.set_xlabel("quality level (%)")
+            ax.set_ylabel(f"normalised {key}")
+            ax.grid(alpha=0.3)
+        axes[0, col].set_title(title, fontsize=10)
+    axes[0, 1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+@hydra.main(config_path="../configs", config_name="tabular_gridworld", version_base="1.3")
+def main(cfg: DictConfig) -> dict:
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    seeds = seed_list(cfg.seeds)
+    start = time.perf_counter()
+    results = [run_seed(cfg, seed) for seed in tqdm(seeds, desc="seeds", disable=not cfg.progress)]
+    summary = summarise(cfg, results)
+    references = reference_summary(results)
+    solvable = solvability(results, STRICT)
+    table = markdown(cfg, summary, references, solvable, len(seeds))
+    seconds = time.perf_counter() - start
+    (run_dir / "results.md").write_text(table + "\n")
+    payload = {
+        "config": OmegaConf.to_container(cfg),
+        "seconds": seconds,
+        "summary": {sweep: {str(q): row for q, row in levels.items()} for sweep, levels in summary.items()},
+        "references": references,
+        "strict_spoildice_solvable": solvable,
+        "seeds": results,
+    }
+    (run_dir / "results.json").write_text(json.dumps(payload, indent=1))
+    if cfg.figures:
+        plot_tradeoff(cfg, summary, run_dir / "tradeoff.png")
+        plot_quality_curves(cfg, summary, run_dir / "quality.png")
+    print(table)
+    print(f"solved and evaluated {len(seeds)} seeds in {seconds:.1f} s; run directory: {run_dir}")
+    return {"summary": summary}
+
+
+if __name__ == "__main__":
+    main()
