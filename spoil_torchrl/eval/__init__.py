@@ -1,0 +1,50 @@
+"""Evaluation: metrics of the paper's section 5.2 and MCAP rollout files.
+
+The environment-driven evaluator and the DSRL recipe's ``results.json`` build on these (issue 6).
+"""
+
+from spoil_torchrl.eval.mcap_io import (
+    EPISODE_SCHEMA,
+    EPISODE_TOPIC,
+    METADATA_NAME,
+    STEP_SCHEMA,
+    STEP_TOPIC,
+    RolloutFileError,
+    Rollouts,
+    RolloutWriter,
+    read_rollouts,
+)
+from spoil_torchrl.eval.metrics import (
+    SeedAggregate,
+    aggregate_over_seeds,
+    episode_cost,
+    episode_metrics,
+    episode_return,
+    feasible_return,
+    mean_of_last,
+    normalized_cost,
+    normalized_return,
+    strict_feasible_return,
+)
+
+__all__ = [
+    "EPISODE_SCHEMA",
+    "EPISODE_TOPIC",
+    "METADATA_NAME",
+    "STEP_SCHEMA",
+    "STEP_TOPIC",
+    "RolloutFileError",
+    "RolloutWriter",
+    "Rollouts",
+    "SeedAggregate",
+    "aggregate_over_seeds",
+    "episode_cost",
+    "episode_metrics",
+    "episode_return",
+    "feasible_return",
+    "mean_of_last",
+    "normalized_cost",
+    "normalized_return",
+    "read_rollouts",
+    "strict_feasible_return",
+]

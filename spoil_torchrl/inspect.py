@@ -1,0 +1,134 @@
+"""Look into an evaluation rollout file: ``python -m spoil_torchrl.inspect <file.mcap> [--plot out.png]``.
+
+Prints the run metadata, whether the file was finished (or which complete episodes were salvaged from a run
+that died), and one table row per episode: evaluation step, episode, length, return, cost, feasible return
+and strict feasible return (the numbers stored in the episode summaries, see
+:mod:`spoil_torchrl.eval.metrics`). ``--plot`` saves a PNG of return, feasible return and cost per episode.
+For step-level plots open the file in Foxglove (topics ``/eval/step`` and ``/eval/episode``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from spoil_torchrl.eval.mcap_io import RolloutFileError, Rollouts, read_rollouts
+
+COLUMNS = (
+    ("eval step", "evaluation_step"),
+    ("episode", "episode"),
+    ("length", "length"),
+    ("return", "return"),
+    ("cost", "cost"),
+    ("feasible return", "feasible_return"),
+    ("strict feasible", "strict_feasible_return"),
+)
+
+
+def _cell(value) -> str:
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else f"{value:.4g}"
+    return str(value)
+
+
+def episode_table(rollouts: Rollouts) -> str:
+    """The episode table as text, one row per complete episode and a final row of means.
+
+    Examples:
+        >>> import tempfile
+        >>> from spoil_torchrl.eval import RolloutWriter
+        >>> path = Path(tempfile.mkdtemp()) / "rollouts.mcap"
+        >>> with RolloutWriter(path, cost_threshold=1.0) as writer:
+        ...     for costs in ([0.0, 1.0, 1.0], [0.0, 0.0]):
+        ...         for c in costs:
+        ...             writer.add_step([0.0], [0.0], reward=1.0, cost=c)
+        ...         _ = writer.end_episode()
+        >>> print(episode_table(read_rollouts(path)))
+        eval step  episode  length  return  cost  feasible return  strict feasible
+        ---------  -------  ------  ------  ----  ---------------  ---------------
+                0        0       3       3     2                2                1
+                0        1       2       2     0                2                2
+             mean                      2.5     1                2              1.5
+    """
+    episodes = rollouts.episodes
+    rows = [[_cell(episodes[key][i].item()) for _, key in COLUMNS] for i in range(episodes.batch_size[0])]
+    if rows:
+        means = [episodes[key].double().mean().item() for _, key in COLUMNS[3:]]
+        rows.append(["mean", "", ""] + [_cell(m) for m in means])
+    header = [name for name, _ in COLUMNS]
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)).rstrip()]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(c.rjust(w) for c, w in zip(row, widths, strict=True)) for row in rows]
+    return "\n".join(lines)
+
+
+def plot_rollouts(rollouts: Rollouts, path: str | Path) -> Path:
+    """Save a PNG with return / feasible return (top) and cost with the threshold (bottom) per episode."""
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    episodes = rollouts.episodes
+    x = list(range(episodes.batch_size[0]))
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    top.plot(x, episodes["return"].tolist(), "o-", label="return")
+    top.plot(x, episodes["feasible_return"].tolist(), "s--", label="feasible return")
+    top.set_ylabel("return")
+    top.legend(loc="best")
+    bottom.plot(x, episodes["cost"].tolist(), "o-", color="tab:red", label="episode cost")
+    thresholds = {t for t in episodes["cost_threshold"].tolist() if not math.isnan(t)}
+    for t in sorted(thresholds):
+        bottom.axhline(t, color="k", linestyle=":", label=f"threshold {t:g}")
+    bottom.set_ylabel("cost")
+    bottom.set_xlabel("episode (file order: evaluation step, then episode)")
+    bottom.legend(loc="best")
+    bottom.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    title = ", ".join(
+        f"{k} {rollouts.metadata[k]}" for k in ("task", "algo", "seed") if k in rollouts.metadata
+    )
+    fig.suptitle(title or "evaluation rollouts")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m spoil_torchrl.inspect",
+        description="Print the episodes of an evaluation rollout file.",
+    )
+    parser.add_argument("file", type=Path, help="rollout file (.mcap) written by RolloutWriter")
+    parser.add_argument("--plot", type=Path, metavar="OUT.png", help="also save a return / cost plot")
+    args = parser.parse_args(argv)
+    try:
+        rollouts = read_rollouts(args.file)
+    except (FileNotFoundError, RolloutFileError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    print(f"file: {args.file}")
+    for key, value in sorted(rollouts.metadata.items()):
+        print(f"  {key}: {value}")
+    n = rollouts.episodes.batch_size[0]
+    if rollouts.finished:
+        print(f"{n} episode(s)" + (f", {rollouts.skipped} incomplete skipped" if rollouts.skipped else ""))
+    else:
+        print(
+            f"the writer did not finish this file: {n} complete episode(s) salvaged, "
+            f"{rollouts.skipped} incomplete skipped; reading stopped at: {rollouts.stop_reason}"
+        )
+    print(episode_table(rollouts))
+    if args.plot is not None:
+        print(f"plot: {plot_rollouts(rollouts, args.plot)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
