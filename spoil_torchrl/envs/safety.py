@@ -53,8 +53,8 @@ def make_env(
     :mod:`spoil_torchrl.envs.compat`).
 
     Examples:
-        >>> env = make_env("SafetyPointCircle1-v0", seed=0)  # doctest: +SKIP
-        >>> env.rollout(3)["next", "cost"].shape  # doctest: +SKIP
+        >>> env = make_env("SafetyPointCircle1-v0", seed=0)
+        >>> env.rollout(3)["next", "cost"].shape
         torch.Size([3, 1])
     """
     task = get_env_task(env_id)
