@@ -19,16 +19,7 @@ from spoil_torchrl.tabular import (
     total_variation,
 )
 from spoil_torchrl.tabular.problems import random_cmdp, random_dual_demo_problem
-
-
-def _two_state(gamma=0.8):
-    """s0 (start): a0 stays, a1 moves to the absorbing s1 (both of s1's actions stay)."""
-    transition = np.zeros((2, 2, 2))
-    transition[0, 0, 0] = transition[0, 1, 1] = 1.0
-    transition[1, :, 1] = 1.0
-    reward = np.array([[0.0, 0.0], [1.0, 1.0]])
-    cost = np.array([[0.0, 1.0], [0.0, 0.0]])
-    return TabularCMDP(transition, reward, cost, [1.0, 0.0], gamma)
+from tests.tabular.helpers import two_state_cmdp
 
 
 def test_bc_is_d_p_and_validates():
@@ -97,7 +88,7 @@ def test_demodice_two_state_against_the_occupancy_family():
     """On _two_state (gamma = 0.8) every occupancy is d = [[x, y], [z, 4y - z]]: flow at s0 reads
     x + y = 0.2 + 0.8 x, so y = 0.2 (1 - x), and flow at s1 reads d(s1) = 0.8 (y + d(s1)), so d(s1) = 4 y.
     Minimising the DemoDICE objective over a fine (x, z) grid of that family must not beat the solver."""
-    mdp = _two_state(gamma=0.8)
+    mdp = two_state_cmdp(gamma=0.8)
     d_P = occupancy(mdp, [[0.2, 0.8], [0.5, 0.5]])
     d_S = occupancy(mdp, [[0.9, 0.1], [0.3, 0.7]])
     alpha = 3.0
@@ -155,7 +146,7 @@ def test_demodice_tends_to_the_restricted_safe_behaviour_for_large_alpha():
 
 
 def test_demodice_bad_inputs():
-    mdp = _two_state()
+    mdp = two_state_cmdp()
     d = occupancy(mdp, [[0.5, 0.5], [0.5, 0.5]])
     with pytest.raises(ValueError, match="alpha"):
         solve_demodice(mdp, d, d, alpha=-1.0)

@@ -18,16 +18,7 @@ from spoil_torchrl.tabular import (
     total_variation,
 )
 from spoil_torchrl.tabular.problems import random_cmdp, random_dual_demo_problem
-
-
-def _two_state(gamma=0.8):
-    """s0 (start): a0 stays, a1 moves to the absorbing s1 (both of s1's actions stay)."""
-    transition = np.zeros((2, 2, 2))
-    transition[0, 0, 0] = transition[0, 1, 1] = 1.0
-    transition[1, :, 1] = 1.0
-    reward = np.array([[0.0, 0.0], [1.0, 1.0]])
-    cost = np.array([[0.0, 1.0], [0.0, 0.0]])
-    return TabularCMDP(transition, reward, cost, [1.0, 0.0], gamma)
+from tests.tabular.helpers import two_state_cmdp
 
 
 def _kl(d, ref):
@@ -36,7 +27,7 @@ def _kl(d, ref):
 
 
 def test_occupancy_by_hand():
-    mdp = _two_state(gamma=0.8)
+    mdp = two_state_cmdp(gamma=0.8)
     # pi(a1|s0) = 1: d(s0) = 1 - gamma = 0.2, the rest in s1.
     d = occupancy(mdp, [[0.0, 1.0], [0.5, 0.5]])
     np.testing.assert_allclose(d, [[0.0, 0.2], [0.4, 0.4]], atol=1e-12)
@@ -49,7 +40,7 @@ def test_occupancy_by_hand():
 
 
 def test_support_excluding_the_exit_keeps_all_mass_in_the_start_state():
-    mdp = _two_state()
+    mdp = two_state_cmdp()
     d_P = occupancy(mdp, [[0.5, 0.5], [0.5, 0.5]])
     d_S = np.array([[1.0, 0.0], [0.0, 0.0]])  # only (s0, a0) is safe
     d = solve_spoildice(mdp, d_P, d_S)
@@ -98,7 +89,7 @@ def test_flow_and_support_on_random_problems(seed, slip):
 
 
 def test_infeasible_support_raises_a_clear_error():
-    mdp = _two_state()
+    mdp = two_state_cmdp()
     d_P = occupancy(mdp, [[0.5, 0.5], [0.5, 0.5]])
     d_S = np.array([[0.0, 1.0], [0.0, 0.0]])  # s0 may only exit into s1, which has no safe action
     with pytest.raises(InfeasibleProblemError, match="Eq. \\(14\\)"):
@@ -106,7 +97,7 @@ def test_infeasible_support_raises_a_clear_error():
 
 
 def test_threshold_defines_the_support():
-    mdp = _two_state()
+    mdp = two_state_cmdp()
     d_P = occupancy(mdp, [[0.5, 0.5], [0.5, 0.5]])
     d_S = np.array([[0.99, 1e-6], [0.0, 0.01 - 1e-6]])
     assert solve_spoildice(mdp, d_P, d_S, threshold=1e-5)[0, 1] == 0.0
@@ -128,7 +119,7 @@ def test_threshold_defines_the_support():
     ],
 )
 def test_bad_cmdp_inputs_raise(kwargs, match):
-    base = _two_state()
+    base = two_state_cmdp()
     args = {
         "transition": base.transition,
         "reward": base.reward,
@@ -142,7 +133,7 @@ def test_bad_cmdp_inputs_raise(kwargs, match):
 
 
 def test_bad_distributions_raise():
-    mdp = _two_state()
+    mdp = two_state_cmdp()
     with pytest.raises(ValueError, match="shape"):
         solve_spoildice(mdp, np.ones((3, 2)) / 6, np.ones((2, 2)) / 4)
     with pytest.raises(ValueError, match="sum 1"):
