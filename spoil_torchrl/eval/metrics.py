@@ -13,7 +13,8 @@ Over a padded batch of episodes: :func:`episode_metrics`. Over evaluations and s
 ("averaged over the last 10 evaluations across multiple random seeds"): :func:`mean_of_last` per seed, then
 :func:`aggregate_over_seeds` (mean and standard error over seeds).
 
-All sums are taken in float64; threshold comparisons are exact (no tolerance).
+All sums are taken in float64; a cumulative cost counts as exceeding a threshold only beyond a relative
+round-off slack of 1e-9 (so 0.1 + 0.1 + 0.1 does not exceed 0.3).
 """
 
 from __future__ import annotations
@@ -49,6 +50,10 @@ def _pair(reward, cost) -> tuple[torch.Tensor, torch.Tensor]:
     if torch.isnan(cost).any():
         raise ValueError("cost contains NaN: the first violation is undefined")
     return reward, cost
+
+
+#: Relative slack of threshold comparisons, against float round-off in cumulative sums.
+ROUND_OFF = 1e-9
 
 
 def _check_threshold(threshold: float) -> float:
@@ -100,7 +105,8 @@ def feasible_return(reward, cost, threshold: float) -> float:
         15.0
     """
     reward, cost = _pair(reward, cost)
-    violated = torch.cumsum(cost, 0) > _check_threshold(threshold)
+    threshold = _check_threshold(threshold)
+    violated = torch.cumsum(cost, 0) > threshold + ROUND_OFF * max(1.0, threshold)
     first = int(violated.to(torch.int8).argmax()) if bool(violated.any()) else reward.numel()
     return float(reward[:first].sum())
 

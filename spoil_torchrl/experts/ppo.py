@@ -74,6 +74,10 @@ class EpisodeTracker:
 
     def update(self, batch: TensorDict) -> tuple[float, float, int]:
         """Mean return and cost of the episodes finished in ``batch`` (NaN if none) and their number."""
+        if batch.ndim != 1:
+            raise ValueError(
+                f"EpisodeTracker expects one environment's [T] batch, got batch size {batch.shape}"
+            )
         steps = torch.cat([batch["next", "reward"], batch["next", "cost"]], -1).reshape(-1, 2).double()
         done = batch["next", "done"].reshape(-1)
         finished = []
@@ -105,7 +109,8 @@ def train_ppo(
             ``functools.partial(spoil_torchrl.envs.make_env, "SafetyPointCircle1-v0", seed=0)``.
         observation_dim, action_dim: sizes of the task.
         config: :class:`PPOConfig`.
-        out_dir: checkpoints ``ckpt_<frames>.pt`` (actor ``state_dict``, loadable with ``weights_only=True``)
+        out_dir: checkpoints ``ckpt_<frames>.pt`` (the actor ``state_dict`` that collected that batch, with the
+            batch's episode statistics; loadable with ``weights_only=True``)
             and ``log.jsonl`` (one line per batch: frames, mean episode return and cost, lambda, seconds).
 
     Returns:
@@ -166,19 +171,25 @@ def train_ppo(
     bar = tqdm(
         total=config.total_frames, desc="ppo-lag" if config.lagrangian else "ppo", disable=not progress
     )
-    last_cost = math.nan
     tracker = EpisodeTracker()
     for i, batch in enumerate(collector):
         frames += batch.numel()
         ep_return, ep_cost, n_episodes = tracker.update(batch)
-        if n_episodes:
-            last_cost = ep_cost
+        line = {
+            "frames": frames,
+            "episode_return": ep_return,
+            "episode_cost": ep_cost,
+            "episodes": n_episodes,
+        }
+        if (i + 1) % config.checkpoint_every == 0 or frames >= config.total_frames:
+            # the weights that collected this batch, with that batch's episode statistics
+            torch.save({"actor": actor.state_dict(), **line}, run_dir / f"ckpt_{frames:09d}.pt")
         with torch.no_grad():
             reward_gae(batch)
             cost_gae(batch)
-        if config.lagrangian and not math.isnan(last_cost):
+        if config.lagrangian and n_episodes:  # no finished episode: no new cost estimate, no step
             lagrange_optim.zero_grad()
-            (-lagrange_param * (last_cost - config.cost_limit)).backward()
+            (-lagrange_param * (ep_cost - config.cost_limit)).backward()
             lagrange_optim.step()
             with torch.no_grad():
                 lagrange_param.clamp_(min=0.0)
@@ -203,24 +214,14 @@ def train_ppo(
                 )
                 optim.zero_grad()
                 total.backward()
-                nn.utils.clip_grad_norm_(
-                    [p for g in optim.param_groups for p in g["params"]], config.max_grad_norm
-                )
+                for group in optim.param_groups:  # actor, critic and cost critic clipped separately
+                    nn.utils.clip_grad_norm_(group["params"], config.max_grad_norm)
                 optim.step()
         collector.update_policy_weights_()
-        line = {
-            "frames": frames,
-            "episode_return": ep_return,
-            "episode_cost": ep_cost,
-            "episodes": n_episodes,
-            "lagrange": lagrange,
-            "seconds": time.perf_counter() - start,
-        }
+        line.update(lagrange=lagrange, seconds=time.perf_counter() - start)
         log.append(line)
         with open(run_dir / "log.jsonl", "a") as f:
             f.write(json.dumps(line) + "\n")
-        if (i + 1) % config.checkpoint_every == 0 or frames >= config.total_frames:
-            torch.save({"actor": actor.state_dict(), **line}, run_dir / f"ckpt_{frames:09d}.pt")
         bar.update(batch.numel())
         bar.set_postfix(ret=f"{ep_return:.1f}", cost=f"{ep_cost:.1f}", lam=f"{lagrange:.2f}")
     bar.close()

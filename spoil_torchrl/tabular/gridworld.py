@@ -88,8 +88,11 @@ def grid_transition(size: int, goal: tuple[int, int], slip: float) -> np.ndarray
         >>> T[0, 3].round(3).tolist()  # from the top-left cell, "right": 0.97 right, 0.01 down, 0.02 stay
         [0.02, 0.97, 0.01, 0.0, 0.0]
     """
-    if not 0.0 <= slip <= 1.0:
-        raise ValueError(f"slip must lie in [0, 1], got {slip}")
+    if not 0.0 <= slip < 0.75:
+        raise ValueError(
+            f"slip must lie in [0, 0.75), got {slip}: beyond that the chosen move is no longer the most likely "
+            "one and the move-based cost and demonstrators would be wrong"
+        )
     n_cells = size * size
     absorbing = n_cells
     transition = np.zeros((n_cells + 1, 4, n_cells + 1))

@@ -166,3 +166,13 @@ def test_aggregate_errors():
     with pytest.raises(ValueError, match="last must be >= 1"):
         mean_of_last([1.0], last=0)
     assert aggregate_over_seeds([[0.0] * 3, [1.0] * 3], last=3).mean == 0.5
+
+
+def test_feasible_return_is_robust_to_round_off_in_the_cost_sum():
+    import torch
+
+    from spoil_torchrl.eval.metrics import feasible_return
+
+    reward = torch.tensor([1.0, 1.0, 1.0, 1.0])
+    cost = torch.tensor([0.1, 0.1, 0.1, 0.1], dtype=torch.float64)  # 0.1 + 0.1 + 0.1 = 0.30000000000000004
+    assert feasible_return(reward, cost, threshold=0.3) == 3.0  # exceeded only at the 4th step

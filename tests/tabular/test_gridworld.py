@@ -155,3 +155,12 @@ def test_normalisations():
         normalised_return(0.1, 0.5, 0.5)
     mean, se = mean_and_standard_error([1.0, 2.0, 3.0])
     assert mean == 2.0 and se == pytest.approx(1.0 / np.sqrt(3))
+
+
+def test_slip_where_the_chosen_move_is_not_the_likeliest_is_rejected():
+    import pytest
+
+    from spoil_torchrl.tabular.gridworld import grid_transition
+
+    with pytest.raises(ValueError, match="slip must lie in"):
+        grid_transition(3, goal=(2, 2), slip=0.8)
