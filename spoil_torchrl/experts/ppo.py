@@ -193,7 +193,7 @@ def train_ppo(
             lagrange_optim.step()
             with torch.no_grad():
                 lagrange_param.clamp_(min=0.0)
-            lagrange = float(lagrange_param)
+            lagrange = float(lagrange_param.detach())
         advantage = batch["advantage"]
         if config.lagrangian:
             advantage = (advantage - lagrange * batch["cost_advantage"]) / (1.0 + lagrange)
