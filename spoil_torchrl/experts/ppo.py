@@ -22,18 +22,16 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import TransformedEnv
-from torchrl.modules import MLP
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 from tqdm.auto import tqdm
 
-from spoil_torchrl.modules import make_actor
+from spoil_torchrl.modules import make_actor, make_value_network
 
 
 @dataclass
@@ -59,11 +57,6 @@ class PPOConfig:
     checkpoint_every: int = 5  # batches
     seed: int = 0
     extra: dict = field(default_factory=dict)
-
-
-def _critic(observation_dim: int, cells, out_key: str) -> TensorDictModule:
-    net = MLP(in_features=observation_dim, out_features=1, num_cells=list(cells), activation_class=nn.Tanh)
-    return TensorDictModule(net, in_keys=["observation"], out_keys=[out_key])
 
 
 class EpisodeTracker:
@@ -128,8 +121,12 @@ def train_ppo(
         distribution="tanh_normal",
         return_log_prob=True,
     )
-    critic = _critic(observation_dim, config.hidden_cells, "state_value")
-    cost_critic = _critic(observation_dim, config.hidden_cells, "cost_value")
+    critic = make_value_network(
+        observation_dim, hidden_cells=config.hidden_cells, out_key="state_value", activation_class=nn.Tanh
+    )
+    cost_critic = make_value_network(
+        observation_dim, hidden_cells=config.hidden_cells, out_key="cost_value", activation_class=nn.Tanh
+    )
     collector = Collector(
         make_env,
         actor,

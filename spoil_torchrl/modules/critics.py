@@ -15,8 +15,10 @@ def make_value_network(
     hidden_cells: Sequence[int] = (256, 256),
     observation_key: str = "observation",
     out_key: str = "nu",
+    activation_class: type[nn.Module] = nn.ReLU,
 ) -> TensorDictModule:
-    """The dual variable nu(s) of the Bellman flow constraints (a ReLU MLP with one output).
+    """A state-value MLP with one output: the dual variable nu(s) of the Bellman flow constraints by default,
+    or any critic V(s) (``out_key="state_value"``, e.g. PPO's with ``activation_class=nn.Tanh``).
 
     Examples:
         >>> import torch
@@ -28,7 +30,10 @@ def make_value_network(
     if observation_dim <= 0:
         raise ValueError(f"observation_dim must be positive, got {observation_dim}")
     net = MLP(
-        in_features=observation_dim, out_features=1, num_cells=list(hidden_cells), activation_class=nn.ReLU
+        in_features=observation_dim,
+        out_features=1,
+        num_cells=list(hidden_cells),
+        activation_class=activation_class,
     )
     return TensorDictModule(net, in_keys=[observation_key], out_keys=[out_key])
 
