@@ -25,7 +25,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from spoil_torchrl.tabular.cmdp import InfeasibleProblemError, TabularCMDP, check_distribution
+from spoil_torchrl.tabular.cmdp import (
+    InfeasibleProblemError,
+    TabularCMDP,
+    check_distribution,
+    flow_residual,
+)
 
 #: Largest flow-constraint violation accepted from the solver.
 FLOW_TOL = 1e-9
@@ -123,9 +128,7 @@ def solve_kl_projection(mdp: TabularCMDP, d_ref, allowed: np.ndarray, *, max_ite
     allowed = np.asarray(allowed, dtype=bool) & (d_ref > 0)
     pairs, states = admissible_pairs(mdp, allowed)
     d = _kl_flow_dual(mdp, d_ref, pairs, states, max_iter)
-    residual = np.abs(
-        d.sum(-1) - (1.0 - mdp.gamma) * mdp.init - mdp.gamma * np.einsum("sat,sa->t", mdp.transition, d)
-    ).max()
+    residual = np.abs(flow_residual(mdp, d)).max()
     if residual > FLOW_TOL:
         raise RuntimeError(f"the dual Newton solve did not converge (flow residual {residual:.3e})")
     return d
