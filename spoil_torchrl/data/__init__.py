@@ -1,6 +1,7 @@
 """Datasets: loading (DSRL layout), IL-SP labelling, controlled mixes and dual-demonstration buffers."""
 
 from spoil_torchrl.data.buffers import DualDemoBuffers
+from spoil_torchrl.data.collect import Segment, collect, rollout, segment_pools
 from spoil_torchrl.data.download import download, sha256_of
 from spoil_torchrl.data.episodes import (
     DSRL_KEYS,
@@ -8,6 +9,13 @@ from spoil_torchrl.data.episodes import (
     episodes_from_arrays,
     select_episodes,
     validate_arrays,
+)
+from spoil_torchrl.data.generated import (
+    DEFAULT_DATASET,
+    GENERATED_DATASETS,
+    ensure_generated,
+    generated_path,
+    get_generated,
 )
 from spoil_torchrl.data.hdf5 import read_dsrl_file, read_metadata, write_dsrl_file
 from spoil_torchrl.data.labeling import (
@@ -30,7 +38,16 @@ from spoil_torchrl.data.load import (
 )
 
 __all__ = [
+    "DEFAULT_DATASET",
     "DSRL_KEYS",
+    "GENERATED_DATASETS",
+    "Segment",
+    "collect",
+    "ensure_generated",
+    "generated_path",
+    "get_generated",
+    "rollout",
+    "segment_pools",
     "POOLS",
     "DatasetError",
     "DualDemoBuffers",

@@ -89,8 +89,14 @@ def load_episodes(
         )
     path = generated_data_dir() / f"{rest}.hdf5"
     if not path.exists():
+        from spoil_torchrl.data.generated import GENERATED_DATASETS
+
+        if rest in GENERATED_DATASETS:
+            how = f"make it with `python recipes/collect_demos.py dataset={rest}`"
+        else:
+            how = f"known generated datasets: {', '.join(GENERATED_DATASETS)}"
         raise DatasetError(
-            f"generated dataset {rest!r} not found at {path}; make it with recipes/collect_demos.py "
+            f"generated dataset {rest!r} not found at {path}; {how} "
             "(or set SPOIL_TORCHRL_DATA_DIR to where it lives)"
         )
     return read_dsrl_file(path, memmap_dir=memmap_dir)

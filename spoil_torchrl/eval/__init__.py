@@ -26,6 +26,7 @@ from spoil_torchrl.eval.metrics import (
     normalized_return,
     strict_feasible_return,
 )
+from spoil_torchrl.eval.tables import mean_stderr, policy_table, transition_episode_metrics
 
 __all__ = [
     "EPISODE_SCHEMA",
@@ -43,8 +44,11 @@ __all__ = [
     "episode_return",
     "feasible_return",
     "mean_of_last",
+    "mean_stderr",
     "normalized_cost",
     "normalized_return",
+    "policy_table",
     "read_rollouts",
     "strict_feasible_return",
+    "transition_episode_metrics",
 ]

@@ -1,0 +1,260 @@
+"""Roll policies out in a Safety-Gymnasium task and write the episodes as a DSRL-layout HDF5 file.
+
+:func:`rollout` runs ``num_envs`` raw environments in lockstep and batches the policy over them (the per-step
+cost is then the simulator's, ~1,500 steps/s for PointCircle1 on one core). Everything is seeded: the
+environments' reset seeds and the action sampling come from ``seed``, so the same call gives the same
+arrays (for the same ``num_envs``). :func:`collect` concatenates several policies' episodes into one file and
+records which episodes came from which policy in the file's metadata (:func:`segment_pools` reads them back),
+together with the random-policy and safe-high returns that normalise returns for the task.
+The file is written atomically: an interrupted collection leaves no file that loads.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor
+from tqdm.auto import tqdm
+
+from spoil_torchrl.data.hdf5 import write_dsrl_file
+from spoil_torchrl.tasks import get_env_task
+
+#: ``policy`` value of a :class:`Segment` that acts uniformly at random.
+RANDOM_POLICY = "random"
+
+
+@dataclass(frozen=True)
+class Segment:
+    """``episodes`` episodes of one policy in a collected dataset.
+
+    Attributes:
+        label: the policy type or pool name, e.g. ``"safe-high"`` (several segments may share a label).
+        policy: ``"random"``, ``"zoo:<name>"`` (a committed policy of the task, see
+            :func:`spoil_torchrl.experts.zoo_policy`) or the path of a policy / PPO checkpoint file.
+        episodes: how many episodes to roll out.
+    """
+
+    label: str
+    policy: str
+    episodes: int
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise ValueError(f"segment {self.label!r}: episodes must be >= 1, got {self.episodes}")
+
+
+def resolve_policy(spec: str, env_id: str) -> ProbabilisticActor | None:
+    """The actor a :class:`Segment` ``policy`` names (``None`` for the random policy)."""
+    from spoil_torchrl.experts.policies import load_policy, zoo_policy
+
+    if spec == RANDOM_POLICY:
+        return None
+    path = zoo_policy(env_id, spec.removeprefix("zoo:")) if spec.startswith("zoo:") else Path(spec)
+    return load_policy(path, env_id=env_id)[0]
+
+
+def _derive_seed(seed: int, *keys: int) -> int:
+    return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
+
+
+def rollout(
+    env_id: str,
+    policy: ProbabilisticActor | None,
+    episodes: int,
+    *,
+    seed: int,
+    num_envs: int = 8,
+    deterministic: bool = False,
+    progress: bool = True,
+    desc: str | None = None,
+) -> dict[str, np.ndarray]:
+    """Run ``episodes`` episodes of ``policy`` (``None``: uniform random actions) and return DSRL arrays.
+
+    Args:
+        env_id: a task of :data:`spoil_torchrl.tasks.ENV_TASKS`.
+        policy: a TorchRL actor reading ``"observation"`` and writing ``"action"``.
+        episodes: number of complete episodes.
+        seed: seeds the environments' resets and the action sampling.
+        num_envs: environments stepped in lockstep (the policy runs once per step on all of them).
+        deterministic: take the policy's deterministic action (evaluation) instead of sampling it.
+
+    Returns:
+        ``observations``, ``next_observations``, ``actions``, ``rewards``, ``costs`` (float32), ``terminals``,
+        ``timeouts`` (bool), episodes back to back in the order they finished.
+    """
+    from spoil_torchrl.envs import make_safety_gymnasium
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    task = get_env_task(env_id)
+    envs = [make_safety_gymnasium(env_id) for _ in range(min(num_envs, episodes))]
+    rng = np.random.default_rng(_derive_seed(seed, 1))
+    for i, env in enumerate(envs):
+        env.action_space.seed(_derive_seed(seed, 2, i))
+    obs = [env.reset(seed=_derive_seed(seed, 3, i))[0] for i, env in enumerate(envs)]
+    steps: list[list[tuple]] = [[] for _ in envs]
+    finished: list[list[tuple]] = []
+    active, started = list(range(len(envs))), len(envs)
+    bar = tqdm(total=episodes * task.episode_length, desc=desc or env_id, disable=not progress, unit="step")
+    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    with torch.random.fork_rng(devices=[]), torch.no_grad(), set_exploration_type(mode):
+        torch.manual_seed(_derive_seed(seed, 4))
+        while active:
+            batch = np.stack([obs[i] for i in active]).astype(np.float32)
+            if policy is None:
+                low, high = envs[0].action_space.low, envs[0].action_space.high
+                actions = rng.uniform(low, high, size=(len(active), *low.shape)).astype(np.float32)
+            else:
+                td = TensorDict({"observation": torch.from_numpy(batch)}, batch_size=[len(active)])
+                actions = policy(td)["action"].numpy()
+            still = []
+            for j, i in enumerate(active):
+                next_obs, reward, terminated, truncated, info = envs[i].step(actions[j])
+                steps[i].append(
+                    (batch[j], next_obs, actions[j], reward, float(info["cost"][0]), terminated, truncated)
+                )
+                if terminated or truncated:
+                    finished.append(steps[i])
+                    steps[i] = []
+                    bar.update(task.episode_length)
+                    if started < episodes:
+                        obs[i] = envs[i].reset()[0]
+                        started += 1
+                        still.append(i)
+                else:
+                    obs[i] = next_obs
+                    still.append(i)
+            active = still
+    bar.close()
+    for env in envs:
+        env.close()
+    flat = [s for episode in finished for s in episode]
+    columns = list(zip(*flat, strict=True))
+    return {
+        "observations": np.stack(columns[0]).astype(np.float32),
+        "next_observations": np.stack(columns[1]).astype(np.float32),
+        "actions": np.stack(columns[2]).astype(np.float32),
+        "rewards": np.asarray(columns[3], dtype=np.float32),
+        "costs": np.asarray(columns[4], dtype=np.float32),
+        "terminals": np.asarray(columns[5], dtype=bool),
+        "timeouts": np.asarray(columns[6], dtype=bool),
+    }
+
+
+def episode_totals(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-episode undiscounted return and cost of DSRL arrays (float64)."""
+    ends = np.flatnonzero(arrays["terminals"] | arrays["timeouts"]) + 1
+    starts = np.concatenate([[0], ends[:-1]])
+    rewards = np.add.reduceat(arrays["rewards"].astype(np.float64), starts)
+    costs = np.add.reduceat(arrays["costs"].astype(np.float64), starts)
+    return rewards, costs
+
+
+def reference_returns(env_id: str, *, episodes: int = 10, seed: int = 0, progress: bool = True) -> dict:
+    """Mean returns of the random policy and of the committed ``safe-high`` policy (``None`` if the task has
+    none): the task's return normalisation ``(R - random) / (safe_high - random)`` for generated data."""
+    from spoil_torchrl.experts.policies import zoo_names
+
+    out = {}
+    for name, spec in (("random_return", RANDOM_POLICY), ("safe_high_return", "zoo:safe-high")):
+        if spec != RANDOM_POLICY and "safe-high" not in zoo_names(env_id):
+            out[name] = None
+            continue
+        arrays = rollout(
+            env_id,
+            resolve_policy(spec, env_id),
+            episodes,
+            seed=_derive_seed(seed, 99),
+            progress=progress,
+            desc=f"reference {spec}",
+        )
+        out[name] = float(episode_totals(arrays)[0].mean())
+    return out
+
+
+def collect(
+    env_id: str,
+    segments: Sequence[Segment],
+    path: str | os.PathLike,
+    *,
+    seed: int = 0,
+    num_envs: int = 8,
+    reference_episodes: int = 10,
+    progress: bool = True,
+    metadata: dict | None = None,
+) -> Path:
+    """Roll out every segment's policy and write all episodes to ``path`` (DSRL layout, atomic).
+
+    The metadata (see :func:`~spoil_torchrl.data.read_metadata`) holds ``env_id``, ``seed``, ``num_envs``,
+    ``cost_threshold`` (the task's episode-cost limit), ``segments`` (label, policy, episode range
+    ``[start, stop)``, mean return and cost), ``random_return`` / ``safe_high_return``, the wall time, and
+    ``metadata``'s entries.
+    """
+    task = get_env_task(env_id)
+    if not segments:
+        raise ValueError("collect needs at least one segment")
+    start_time = time.perf_counter()
+    parts, records, first = [], [], 0
+    for k, segment in enumerate(segments):
+        arrays = rollout(
+            env_id,
+            resolve_policy(segment.policy, env_id),
+            segment.episodes,
+            seed=_derive_seed(seed, 10, k),
+            num_envs=num_envs,
+            progress=progress,
+            desc=f"{segment.label} ({segment.policy})",
+        )
+        returns, costs = episode_totals(arrays)
+        records.append(
+            {
+                **asdict(segment),
+                "start": first,
+                "stop": first + segment.episodes,
+                "mean_return": float(returns.mean()),
+                "mean_cost": float(costs.mean()),
+            }
+        )
+        first += segment.episodes
+        parts.append(arrays)
+    references = reference_returns(env_id, episodes=reference_episodes, seed=seed, progress=progress)
+    arrays = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    meta = {
+        "env_id": env_id,
+        "seed": seed,
+        "num_envs": num_envs,
+        "cost_threshold": task.cost_limit,
+        "segments": records,
+        **references,
+        "seconds": time.perf_counter() - start_time,
+        "steps": int(arrays["rewards"].shape[0]),
+        **(metadata or {}),
+    }
+    return write_dsrl_file(path, arrays, metadata=meta)
+
+
+def segment_pools(metadata: dict) -> dict[str, torch.Tensor]:
+    """Episode ids per segment label from a collected file's metadata (labels shared by segments are merged).
+
+    Examples:
+        >>> meta = {"segments": [{"label": "safe-high", "start": 0, "stop": 2},
+        ...                      {"label": "unsafe-high", "start": 2, "stop": 5}]}
+        >>> {k: v.tolist() for k, v in segment_pools(meta).items()}
+        {'safe-high': [0, 1], 'unsafe-high': [2, 3, 4]}
+    """
+    if "segments" not in metadata:
+        raise ValueError("the metadata has no 'segments': not a file written by spoil_torchrl's collect()")
+    pools: dict[str, list[torch.Tensor]] = {}
+    for seg in metadata["segments"]:
+        pools.setdefault(seg["label"], []).append(torch.arange(seg["start"], seg["stop"]))
+    return {label: torch.cat(parts) for label, parts in pools.items()}

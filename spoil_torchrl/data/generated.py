@@ -1,0 +1,117 @@
+"""The named datasets this project makes itself from the committed policies (``"generated:<name>"``).
+
+DSRL files cannot be downloaded on every machine, so the realistic experiments stand on data rolled out here,
+as the paper made its Safety-Gymnasium datasets (appendix F.2). Each entry of :data:`GENERATED_DATASETS` says
+which committed policies (:mod:`spoil_torchrl.experts.policies`) are rolled out for how many episodes;
+:func:`ensure_generated` makes the file on first use (:func:`spoil_torchrl.data.collect.collect`, atomic) and
+then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`.
+
+* ``point-circle1-mixed`` -- the **embedded default** of ``recipes/spoildice_dsrl.py``: 600 PointCircle1
+  episodes from the four policy types, nine intermediate PPO / PPO-Lagrangian checkpoints and the random
+  policy, spanning returns from about 0 to 57 and episode costs from 0 to about 250, like a DSRL dataset
+  (about two minutes to make on 2 cores).
+* ``point-circle1-controlled`` -- the four typed pools of the controlled datasets (F.2), 500 episodes each, so
+  that D_U can hold 2,000 trajectories; pick D_S / D_P / D_U with
+  :func:`~spoil_torchrl.data.controlled_mix` on :func:`~spoil_torchrl.data.collect.segment_pools`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from spoil_torchrl.data.collect import RANDOM_POLICY, Segment, collect
+from spoil_torchrl.data.labeling import POOLS
+
+
+@dataclass(frozen=True)
+class GeneratedDataset:
+    """A dataset recipe: ``segments`` of ``env_id`` rolled out with ``seed``."""
+
+    name: str
+    env_id: str
+    segments: tuple[Segment, ...]
+    description: str
+    seed: int = 0
+
+    @property
+    def episodes(self) -> int:
+        return sum(s.episodes for s in self.segments)
+
+
+def _typed(episodes: int) -> tuple[Segment, ...]:
+    return tuple(Segment(pool, f"zoo:{pool}", episodes) for pool in POOLS)
+
+
+GENERATED_DATASETS: dict[str, GeneratedDataset] = {
+    d.name: d
+    for d in [
+        GeneratedDataset(
+            "point-circle1-mixed",
+            "SafetyPointCircle1-v0",
+            _typed(60)
+            + tuple(
+                Segment("intermediate", f"zoo:{name}", 35)
+                for name in (
+                    "ppolag-0100k",
+                    "ppolag-0200k",
+                    "ppolag-0300k",
+                    "ppolag-0500k",
+                    "ppolag-0750k",
+                    "ppolag-0800k",
+                    "ppo-0050k",
+                    "ppo-0100k",
+                    "ppo-0250k",
+                )
+            )
+            + (Segment("random", RANDOM_POLICY, 45),),
+            "DSRL-style mixed PointCircle1 data (the main recipe's embedded default)",
+        ),
+        GeneratedDataset(
+            "point-circle1-controlled",
+            "SafetyPointCircle1-v0",
+            _typed(500),
+            "controlled PointCircle1 pools: 500 episodes of each policy type (paper F.2)",
+        ),
+    ]
+}
+
+#: The main recipe's default dataset.
+DEFAULT_DATASET = "point-circle1-mixed"
+
+
+def get_generated(name: str) -> GeneratedDataset:
+    """The recipe of a named generated dataset; an unknown name raises with the known ones."""
+    if name not in GENERATED_DATASETS:
+        raise KeyError(f"unknown generated dataset {name!r}; known: {', '.join(GENERATED_DATASETS)}")
+    return GENERATED_DATASETS[name]
+
+
+def generated_path(name: str) -> Path:
+    """Where the dataset ``name`` is cached (it may not exist yet)."""
+    from spoil_torchrl.data.load import generated_data_dir
+
+    return generated_data_dir() / f"{name}.hdf5"
+
+
+def ensure_generated(
+    name: str, *, force: bool = False, num_envs: int = 8, progress: bool = True
+) -> Path:
+    """The path of the generated dataset ``name``, making it first if it is not cached (or ``force``).
+
+    Making it rolls out the committed policies (needs the ``safety`` extra); the file appears only once it is
+    complete. Examples are in ``recipes/collect_demos.py`` and the tests.
+    """
+    spec = get_generated(name)
+    path = generated_path(name)
+    if path.exists() and not force:
+        return path
+    return collect(
+        spec.env_id,
+        spec.segments,
+        path,
+        seed=spec.seed,
+        num_envs=num_envs,
+        progress=progress,
+        metadata={"name": spec.name, "description": spec.description},
+    )

@@ -1,0 +1,171 @@
+"""Policy checkpoints: save / load a Gaussian actor with the facts needed to rebuild it, and the committed zoo.
+
+A policy file is a plain dict that ``torch.load(..., weights_only=True)`` accepts::
+
+    {"format": 1, "env_id": "SafetyPointCircle1-v0", "hidden_cells": [64, 64],
+     "observation_dim": 28, "action_dim": 2, "actor": <state_dict>, "info": {...}}
+
+:func:`load_policy` also reads the raw ``ckpt_<frames>.pt`` files that :func:`~spoil_torchrl.experts.train_ppo`
+writes (``{"actor": <state_dict>, "frames": ..., ...}``): the layer sizes are then read off the weights.
+
+The **zoo** is the set of policies committed with the package (``spoil_torchrl/experts/zoo/<env_id>/<name>.pt``):
+the paper's four policy types (``safe-high``, ``safe-medium``, ``unsafe-high``, ``unsafe-medium``) and a few
+intermediate PPO / PPO-Lagrangian checkpoints, from which :mod:`spoil_torchrl.data.generated` makes datasets.
+``docs/experts.md`` says where each one comes from and how it scores.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+from torchrl.modules import ProbabilisticActor
+
+from spoil_torchrl.modules import make_actor
+
+POLICY_FORMAT = 1
+ZOO_DIR = Path(__file__).parent / "zoo"
+
+
+class PolicyFileError(ValueError):
+    """A policy file that cannot be loaded (missing, not a checkpoint, wrong task or sizes)."""
+
+
+def _linear_weights(state_dict: dict) -> list[torch.Tensor]:
+    return [v for k, v in state_dict.items() if k.endswith("weight") and v.ndim == 2]
+
+
+def _sizes_from_weights(state_dict: dict) -> tuple[int, tuple[int, ...], int]:
+    """(observation_dim, hidden_cells, action_dim) of a :func:`make_actor` Gaussian MLP's state dict."""
+    weights = _linear_weights(state_dict)
+    if not weights:
+        raise PolicyFileError("the state dict has no linear layers")
+    hidden = tuple(int(w.shape[0]) for w in weights[:-1])
+    out = int(weights[-1].shape[0])
+    if out % 2:
+        raise PolicyFileError(f"the last layer has {out} outputs; a Gaussian actor has 2 x action_dim")
+    return int(weights[0].shape[1]), hidden, out // 2
+
+
+def save_policy(
+    path: str | os.PathLike, actor: ProbabilisticActor, *, env_id: str, info: dict | None = None
+) -> Path:
+    """Write ``actor`` (built by :func:`~spoil_torchrl.modules.make_actor`, ``tanh_normal``) as a policy file.
+
+    ``info`` is free JSON-like data kept with the weights (e.g. the training run and frame count).
+
+    Examples:
+        >>> import tempfile
+        >>> actor = make_actor(28, 2, hidden_cells=(8,))
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     path = save_policy(f"{tmp}/p.pt", actor, env_id="SafetyPointCircle1-v0", info={"frames": 5})
+        ...     loaded, meta = load_policy(path)
+        >>> meta["hidden_cells"], meta["info"]
+        ([8], {'frames': 5})
+    """
+    state = {k: v.detach().cpu().clone() for k, v in actor.state_dict().items()}
+    obs_dim, hidden, act_dim = _sizes_from_weights(state)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(
+        {
+            "format": POLICY_FORMAT,
+            "env_id": env_id,
+            "observation_dim": obs_dim,
+            "action_dim": act_dim,
+            "hidden_cells": list(hidden),
+            "actor": state,
+            "info": dict(info or {}),
+        },
+        tmp,
+    )
+    os.replace(tmp, path)
+    return path
+
+
+def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[ProbabilisticActor, dict]:
+    """Rebuild the actor stored at ``path`` (a policy file or a raw PPO checkpoint), in eval mode.
+
+    Args:
+        path: the file.
+        env_id: if given, the policy must be for this task (checked against the file's ``env_id`` when it has
+            one, and against the task's observation / action sizes always).
+
+    Returns:
+        ``(actor, meta)`` with ``meta`` holding ``env_id`` (or ``None``), the sizes, ``hidden_cells`` and ``info``.
+
+    Raises:
+        PolicyFileError: missing or unreadable file, or a policy for another task.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PolicyFileError(f"{path}: no such policy file")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises several types for corrupt / foreign pickles
+        raise PolicyFileError(f"{path}: not a policy checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(raw, dict) or "actor" not in raw:
+        raise PolicyFileError(f"{path}: not a policy checkpoint (no 'actor' state dict)")
+    state = raw["actor"]
+    obs_dim, hidden, act_dim = _sizes_from_weights(state)
+    meta = {
+        "env_id": raw.get("env_id"),
+        "observation_dim": obs_dim,
+        "action_dim": act_dim,
+        "hidden_cells": list(hidden),
+        "info": raw.get("info", {k: v for k, v in raw.items() if k != "actor"}),
+    }
+    if env_id is not None:
+        from spoil_torchrl.tasks import get_env_task
+
+        task = get_env_task(env_id)
+        if meta["env_id"] is not None and meta["env_id"] != env_id:
+            raise PolicyFileError(f"{path}: a policy for {meta['env_id']}, not {env_id}")
+        if (obs_dim, act_dim) != (task.observation_dim, task.action_dim):
+            raise PolicyFileError(
+                f"{path}: a policy for observation/action sizes {obs_dim}/{act_dim}; {env_id} has "
+                f"{task.observation_dim}/{task.action_dim}"
+            )
+    actor = make_actor(obs_dim, act_dim, hidden_cells=hidden, distribution="tanh_normal")
+    try:
+        actor.load_state_dict(state)
+    except RuntimeError as err:
+        raise PolicyFileError(f"{path}: the weights do not fit a tanh-normal actor ({err})") from err
+    return actor.eval(), meta
+
+
+def export_checkpoint(
+    checkpoint: str | os.PathLike, env_id: str, name: str, *, info: dict | None = None
+) -> Path:
+    """Turn a training checkpoint (e.g. ``runs/experts/.../ckpt_000700000.pt``) into the zoo policy ``name``.
+
+    The file's own statistics (frames, batch return / cost) are kept in ``info`` with the extra ``info``.
+    """
+    actor, meta = load_policy(checkpoint, env_id=env_id)
+    record = {**meta["info"], **(info or {}), "exported_from": Path(checkpoint).name}
+    return save_policy(ZOO_DIR / env_id / f"{name}.pt", actor, env_id=env_id, info=record)
+
+
+def zoo_names(env_id: str) -> list[str]:
+    """Names of the committed policies for ``env_id`` (empty if none).
+
+    Examples:
+        >>> [n for n in zoo_names("SafetyPointCircle1-v0") if n.endswith(("-high", "-medium"))]
+        ['safe-high', 'safe-medium', 'unsafe-high', 'unsafe-medium']
+    """
+    folder = ZOO_DIR / env_id
+    return sorted(p.stem for p in folder.glob("*.pt")) if folder.is_dir() else []
+
+
+def zoo_policy(env_id: str, name: str) -> Path:
+    """The path of the committed policy ``name`` for ``env_id``; raises with the available names."""
+    path = ZOO_DIR / env_id / f"{name}.pt"
+    if not path.is_file():
+        available = zoo_names(env_id)
+        raise PolicyFileError(
+            f"no committed policy {name!r} for {env_id}; "
+            + (f"available: {', '.join(available)}" if available else "this task has none")
+        )
+    return path
