@@ -81,7 +81,9 @@ def test_zoo_policies_load_with_weights_only_and_check_the_task():
     for name in names:
         raw = torch.load(zoo_policy("SafetyPointCircle1-v0", name), weights_only=True)
         assert raw["env_id"] == "SafetyPointCircle1-v0" and raw["hidden_cells"] == [64, 64]
-    actor, meta = load_policy(zoo_policy("SafetyPointCircle1-v0", "safe-high"), env_id="SafetyPointCircle1-v0")
+    actor, meta = load_policy(
+        zoo_policy("SafetyPointCircle1-v0", "safe-high"), env_id="SafetyPointCircle1-v0"
+    )
     assert meta["info"]["algorithm"] == "PPO-Lagrangian" and not actor.training
     with pytest.raises(PolicyFileError, match="not SafetyHalfCheetahVelocity-v1"):
         load_policy(zoo_policy("SafetyPointCircle1-v0", "safe-high"), env_id="SafetyHalfCheetahVelocity-v1")

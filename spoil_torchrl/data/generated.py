@@ -94,9 +94,7 @@ def generated_path(name: str) -> Path:
     return generated_data_dir() / f"{name}.hdf5"
 
 
-def ensure_generated(
-    name: str, *, force: bool = False, num_envs: int = 8, progress: bool = True
-) -> Path:
+def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progress: bool = True) -> Path:
     """The path of the generated dataset ``name``, making it first if it is not cached (or ``force``).
 
     Making it rolls out the committed policies (needs the ``safety`` extra); the file appears only once it is
