@@ -23,9 +23,9 @@ $(STAMP): pyproject.toml Makefile
 	  $(PY) -m pip install --quiet --disable-pip-version-check --no-deps $(SAFETY_GYMNASIUM);; esac
 	@touch $(STAMP)
 
-# The main job. Until the DSRL recipe lands (issue 6) this is the tabular end-to-end run.
+# The main job: SpoilDICE on the embedded PointCircle1 dataset (made from the committed experts on first use).
 run: $(STAMP)
-	$(PY) recipes/tabular_spoildice.py $(ARGS)
+	$(PY) recipes/spoildice_dsrl.py $(ARGS)
 
 test: $(STAMP)
 	$(PY) -m pytest -q $(ARGS)

@@ -25,9 +25,8 @@ from spoil_torchrl.tabular.neural import TabularTrainingConfig, train_tabular_sp
 from spoil_torchrl.tabular.problems import random_dual_demo_problem
 
 BANNER = (
-    "spoil_torchrl `make run`: the DSRL recipe (recipes/spoildice_dsrl.py, issue 6) does not exist yet, so this\n"
-    "runs the best end-to-end job available: neural SpoilDICE (discriminators -> support -> nu/lambda ->\n"
-    "weighted BC, Algorithm 1) on sampled data of random tabular CMDPs, checked against the exact solution."
+    "Tabular check of the neural pipeline: SpoilDICE (discriminators -> support -> nu/lambda -> weighted BC,\n"
+    "Algorithm 1) on sampled data of random tabular CMDPs, checked against the exact solution of Eq. (4)."
 )
 
 

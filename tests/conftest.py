@@ -62,3 +62,19 @@ def batch() -> TensorDict:
 
 def grads_of(module_params) -> list[torch.Tensor | None]:
     return [p.grad for p in module_params]
+
+
+@pytest.fixture(scope="session")
+def tiny_pc1_dataset(tmp_path_factory):
+    """A small collected PointCircle1 file (3 episodes of each policy type) with the collector's metadata."""
+    import importlib.util
+
+    if importlib.util.find_spec("safety_gymnasium") is None:
+        pytest.skip("safety-gymnasium not installed")
+    from spoil_torchrl.data import POOLS, Segment, collect
+
+    segments = [Segment(pool, f"zoo:{pool}", 3) for pool in POOLS]
+    path = tmp_path_factory.mktemp("data") / "tiny-pc1.hdf5"
+    return collect(
+        "SafetyPointCircle1-v0", segments, path, seed=0, num_envs=3, reference_episodes=2, progress=False
+    )

@@ -12,5 +12,10 @@ def test_readme_loop_example_runs(capsys):
     blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
     loop = [b for b in blocks if "SpoilDICELoss(" in b]
     assert loop, "the README lost its training-loop example"
-    exec(compile(loop[0], "README.md", "exec"), {})
+    namespace: dict = {}
+    exec(compile(loop[0], "README.md", "exec"), namespace)
     assert "lagrange" in capsys.readouterr().out
+    trainer = [b for b in blocks if "offline_trainer(" in b]
+    assert trainer, "the README lost its Trainer example"
+    exec(compile(trainer[0], "README.md", "exec"), namespace)
+    assert "steps done: 20" in capsys.readouterr().out

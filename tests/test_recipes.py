@@ -24,7 +24,7 @@ def test_tabular_recipe_end_to_end(tmp_path):
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "DSRL recipe" in proc.stdout  # says what it runs instead of the main job
+    assert "Tabular check" in proc.stdout
     assert "| SpoilDICE neural |" in proc.stdout
     results = json.loads((tmp_path / "results.json").read_text())
     assert [r["seed"] for r in results] == [0, 1]
@@ -58,3 +58,45 @@ def test_train_experts_recipe_tiny(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "SafetyPointCircle1-v0: 500 frames" in proc.stdout
     assert list(tmp_path.glob("ckpt_*.pt"))
+
+
+def _dsrl_recipe(tmp_path, dataset, *overrides):
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "spoildice_dsrl.py"),
+        "preset=smoke",
+        f"dataset.source=file:{dataset}",
+        "dataset.n_safe=2",
+        "dataset.n_performant=2",
+        "progress=false",
+        f"hydra.run.dir={tmp_path}",
+        *overrides,
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc, json.loads((tmp_path / "results.json").read_text())
+
+
+def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
+    from spoil_torchrl.eval import read_rollouts
+    from spoil_torchrl.experts import load_policy
+
+    proc, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset)
+    assert "| normalized_feasible_return |" in proc.stdout
+    assert results["status"] == "finished" and results["algo"] == "spoildice"
+    assert [e["step"] for e in results["evaluations"]] == [100, 200]
+    assert set(results["aggregate"]) >= {"normalized_feasible_return", "normalized_cost", "feasible_return"}
+    assert 0.0 < results["diagnostics"]["support_share_unlabeled"] <= 1.0
+    assert results["data"]["safe"]["episodes"] == 2
+    rollouts = read_rollouts(tmp_path / "rollouts.mcap")
+    assert rollouts.episodes.shape[0] == 2 and rollouts.metadata["algo"] == "spoildice"
+    _, meta = load_policy(tmp_path / "checkpoints" / "policy.pt", env_id="SafetyPointCircle1-v0")
+    assert meta["distribution"] == "normal" and meta["info"]["step"] == 200
+    assert "train:" in (tmp_path / "config.yaml").read_text()
+    assert list((tmp_path / "logs").rglob("dice.loss_nu.csv"))
+
+
+def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
+    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=bc", "logger=none")
+    assert results["algo"] == "bc" and results["diagnostics"] == {}
+    assert not (tmp_path / "logs").exists()

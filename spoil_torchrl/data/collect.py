@@ -88,7 +88,8 @@ def rollout(
 
     Returns:
         ``observations``, ``next_observations``, ``actions``, ``rewards``, ``costs`` (float32), ``terminals``,
-        ``timeouts`` (bool), episodes back to back in the order they finished.
+        ``timeouts`` (bool), episodes back to back in the order they finished. Actions are clipped to the
+        action bounds (a no-op for tanh-squashed policies).
     """
     from spoil_torchrl.envs import make_safety_gymnasium
 
@@ -116,7 +117,9 @@ def rollout(
                 actions = rng.uniform(low, high, size=(len(active), *low.shape)).astype(np.float32)
             else:
                 td = TensorDict({"observation": torch.from_numpy(batch)}, batch_size=[len(active)])
-                actions = policy(td)["action"].numpy()
+                # an unbounded (Normal) policy's action is clipped to the bounds, and stored clipped
+                space = envs[0].action_space
+                actions = np.clip(policy(td)["action"].numpy(), space.low, space.high)
             still = []
             for j, i in enumerate(active):
                 next_obs, reward, terminated, truncated, info = envs[i].step(actions[j])

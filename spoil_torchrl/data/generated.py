@@ -51,7 +51,7 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             "SafetyPointCircle1-v0",
             _typed(60)
             + tuple(
-                Segment("intermediate", f"zoo:{name}", 35)
+                Segment(name, f"zoo:{name}", 35)
                 for name in (
                     "ppolag-0100k",
                     "ppolag-0200k",

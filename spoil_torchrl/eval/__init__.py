@@ -1,8 +1,9 @@
 """Evaluation: metrics of the paper's section 5.2 and MCAP rollout files.
 
-The environment-driven evaluator and the DSRL recipe's ``results.json`` build on these (issue 6).
+:class:`Evaluator` runs a policy in the task's real environment and reports them (and writes MCAP).
 """
 
+from spoil_torchrl.eval.evaluator import Evaluator, pad_episodes
 from spoil_torchrl.eval.mcap_io import (
     EPISODE_SCHEMA,
     EPISODE_TOPIC,
@@ -31,6 +32,7 @@ from spoil_torchrl.eval.tables import mean_stderr, policy_table, transition_epis
 __all__ = [
     "EPISODE_SCHEMA",
     "EPISODE_TOPIC",
+    "Evaluator",
     "METADATA_NAME",
     "STEP_SCHEMA",
     "STEP_TOPIC",
@@ -47,6 +49,7 @@ __all__ = [
     "mean_stderr",
     "normalized_cost",
     "normalized_return",
+    "pad_episodes",
     "policy_table",
     "read_rollouts",
     "strict_feasible_return",

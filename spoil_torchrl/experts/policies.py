@@ -3,7 +3,8 @@
 A policy file is a plain dict that ``torch.load(..., weights_only=True)`` accepts::
 
     {"format": 1, "env_id": "SafetyPointCircle1-v0", "hidden_cells": [64, 64],
-     "observation_dim": 28, "action_dim": 2, "actor": <state_dict>, "info": {...}}
+     "observation_dim": 28, "action_dim": 2, "distribution": "tanh_normal", "actor": <state_dict>,
+     "info": {...}}
 
 :func:`load_policy` also reads the raw ``ckpt_<frames>.pt`` files that :func:`~spoil_torchrl.experts.train_ppo`
 writes (``{"actor": <state_dict>, "frames": ..., ...}``): the layer sizes are then read off the weights.
@@ -49,9 +50,15 @@ def _sizes_from_weights(state_dict: dict) -> tuple[int, tuple[int, ...], int]:
 
 
 def save_policy(
-    path: str | os.PathLike, actor: ProbabilisticActor, *, env_id: str, info: dict | None = None
+    path: str | os.PathLike,
+    actor: ProbabilisticActor,
+    *,
+    env_id: str,
+    distribution: str = "tanh_normal",
+    info: dict | None = None,
 ) -> Path:
-    """Write ``actor`` (built by :func:`~spoil_torchrl.modules.make_actor`, ``tanh_normal``) as a policy file.
+    """Write ``actor`` (built by :func:`~spoil_torchrl.modules.make_actor` with ``distribution``) as a policy
+    file (atomically).
 
     ``info`` is free JSON-like data kept with the weights (e.g. the training run and frame count).
 
@@ -76,6 +83,7 @@ def save_policy(
             "observation_dim": obs_dim,
             "action_dim": act_dim,
             "hidden_cells": list(hidden),
+            "distribution": distribution,
             "actor": state,
             "info": dict(info or {}),
         },
@@ -115,6 +123,7 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
         "observation_dim": obs_dim,
         "action_dim": act_dim,
         "hidden_cells": list(hidden),
+        "distribution": raw.get("distribution", "tanh_normal"),
         "info": raw.get("info", {k: v for k, v in raw.items() if k != "actor"}),
     }
     if env_id is not None:
@@ -128,11 +137,13 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
                 f"{path}: a policy for observation/action sizes {obs_dim}/{act_dim}; {env_id} has "
                 f"{task.observation_dim}/{task.action_dim}"
             )
-    actor = make_actor(obs_dim, act_dim, hidden_cells=hidden, distribution="tanh_normal")
+    actor = make_actor(obs_dim, act_dim, hidden_cells=hidden, distribution=meta["distribution"])
     try:
         actor.load_state_dict(state)
     except RuntimeError as err:
-        raise PolicyFileError(f"{path}: the weights do not fit a tanh-normal actor ({err})") from err
+        raise PolicyFileError(
+            f"{path}: the weights do not fit a {meta['distribution']} actor ({err})"
+        ) from err
     return actor.eval(), meta
 
 

@@ -1,0 +1,147 @@
+"""From a dataset source to the inputs of Algorithm 1: D_S, D_P, D_U episode ids, the task, the cost threshold
+and the return normalisation (paper F.1 for IL-SP labelling, F.2 for controlled mixes)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import torch
+from tensordict import TensorDict
+
+from spoil_torchrl.data.collect import segment_pools
+from spoil_torchrl.data.episodes import DatasetError
+from spoil_torchrl.data.generated import ensure_generated
+from spoil_torchrl.data.hdf5 import read_metadata
+from spoil_torchrl.data.labeling import controlled_mix, draw, episode_stats, label_ilsp
+from spoil_torchrl.data.load import load_episodes, parse_source
+from spoil_torchrl.tasks import ENV_TASKS, get_dsrl_dataset
+
+SCHEMES = ("ilsp", "controlled")
+
+
+@dataclass
+class PreparedDataset:
+    """A loaded dataset with its roles and the constants to evaluate on it."""
+
+    episodes: TensorDict
+    roles: dict[str, torch.Tensor]
+    env_id: str
+    cost_threshold: float
+    return_range: tuple[float, float]
+    metadata: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """Sizes of the roles (episodes and transitions) and the constants, for logs and ``results.json``."""
+        stats = episode_stats(self.episodes)
+        out = {
+            "env_id": self.env_id,
+            "cost_threshold": self.cost_threshold,
+            "return_range": self.return_range,
+        }
+        for role, ids in self.roles.items():
+            out[role] = {
+                "episodes": int(ids.numel()),
+                "transitions": int(stats["length"][ids].sum()),
+                "mean_return": float(stats["return"][ids].mean()),
+                "mean_cost": float(stats["cost"][ids].mean()),
+                "safe_share": float((stats["cost"][ids] <= self.cost_threshold).double().mean()),
+            }
+        return out
+
+
+def _source_constants(source: str, metadata: dict) -> tuple[str | None, float | None, tuple | None]:
+    """(env_id, cost threshold, return range) a source implies: generated metadata or the DSRL table."""
+    scheme, rest = parse_source(source)
+    if scheme == "dsrl":
+        d = get_dsrl_dataset(rest)
+        env = next((t.env_id for t in ENV_TASKS.values() if t.dsrl_id == d.dataset_id), None)
+        return env, d.cost_threshold, (d.min_return, d.max_return)
+    if metadata.get("random_return") is not None and metadata.get("safe_high_return") is not None:
+        rng = (metadata["random_return"], metadata["safe_high_return"])
+    else:
+        rng = None
+    return metadata.get("env_id"), metadata.get("cost_threshold"), rng
+
+
+def select_roles(
+    episodes: TensorDict,
+    cfg: Mapping,
+    *,
+    cost_threshold: float,
+    metadata: Mapping,
+    seed: int,
+) -> dict[str, torch.Tensor]:
+    """D_S, D_P, D_U as episode ids, by ``cfg["scheme"]``:
+
+    * ``"ilsp"`` (F.1): label every episode (safe iff cost <= threshold; performant iff return >= the
+      ``return_quantile`` quantile of the safe returns), then draw ``n_safe`` safe and ``n_performant``
+      performant episodes (seeded); D_U = every episode, or ``n_unlabeled`` drawn ones.
+    * ``"controlled"`` (F.2): :func:`~spoil_torchrl.data.controlled_mix` of the file's policy-type pools with
+      ``performance`` (share of safe-high in D_S) and ``safeness`` (share of safe-high in D_P).
+    """
+    scheme = cfg["scheme"]
+    if scheme not in SCHEMES:
+        raise ValueError(f"unknown labelling scheme {scheme!r}; choose one of {SCHEMES}")
+    n_unlabeled = cfg.get("n_unlabeled")
+    if scheme == "controlled":
+        return controlled_mix(
+            segment_pools(dict(metadata)),
+            n_safe=int(cfg["n_safe"]),
+            performance=float(cfg["performance"]),
+            n_performant=int(cfg["n_performant"]),
+            safeness=float(cfg["safeness"]),
+            n_unlabeled=None if n_unlabeled is None else int(n_unlabeled),
+            seed=seed,
+        )
+    labels = label_ilsp(episodes, cost_threshold, float(cfg.get("return_quantile", 0.9)))
+    roles = {}
+    for role, key, offset in (("safe", "n_safe", 0), ("performant", "n_performant", 1)):
+        ids, k = labels[role], int(cfg[key])
+        if ids.numel() < k:
+            raise DatasetError(
+                f"the dataset has {ids.numel()} {role} episodes (threshold {cost_threshold}), fewer than "
+                f"{key}={k}; lower {key}"
+            )
+        roles[role] = draw(ids, k, seed=seed + offset)
+    unlabeled = labels["unlabeled"]
+    roles["unlabeled"] = (
+        unlabeled if n_unlabeled is None else draw(unlabeled, int(n_unlabeled), seed=seed + 2)
+    )
+    return roles
+
+
+def prepare_dataset(
+    cfg: Mapping, *, env_id: str | None = None, seed: int = 0, progress: bool = True
+) -> PreparedDataset:
+    """Load ``cfg["source"]`` (making a named generated dataset first when ``cfg["generate"]`` and it is not
+    cached), work out the cost threshold and return range (``cfg`` overrides, else the file's metadata or the
+    DSRL table), check that it belongs to ``env_id``, and select the roles (:func:`select_roles`)."""
+    source = cfg["source"]
+    scheme, rest = parse_source(source)
+    if scheme == "generated" and cfg.get("generate", True):
+        ensure_generated(rest, progress=progress)
+    episodes = load_episodes(source, progress=progress)
+    metadata = read_metadata(rest) if scheme == "file" else {}
+    if scheme == "generated":
+        from spoil_torchrl.data.generated import generated_path
+
+        metadata = read_metadata(generated_path(rest))
+    source_env, source_threshold, source_range = _source_constants(source, metadata)
+    if env_id is not None and source_env is not None and source_env != env_id:
+        raise DatasetError(f"dataset {source} was recorded in {source_env}, but the task is {env_id}")
+    threshold = cfg.get("cost_threshold") if cfg.get("cost_threshold") is not None else source_threshold
+    return_range = cfg.get("return_range") if cfg.get("return_range") is not None else source_range
+    if threshold is None:
+        raise DatasetError(f"{source}: no cost threshold known; set dataset.cost_threshold")
+    if return_range is None:
+        raise DatasetError(f"{source}: no return range known; set dataset.return_range=[R_min,R_max]")
+    roles = select_roles(episodes, cfg, cost_threshold=float(threshold), metadata=metadata, seed=seed)
+    return PreparedDataset(
+        episodes,
+        roles,
+        env_id or source_env,
+        float(threshold),
+        (float(return_range[0]), float(return_range[1])),
+        metadata,
+    )

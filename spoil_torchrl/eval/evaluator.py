@@ -1,0 +1,141 @@
+"""Evaluate a policy in the task's real environment: deterministic episodes, the paper's metrics, MCAP output."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.modules import ProbabilisticActor
+
+from spoil_torchrl.eval.mcap_io import RolloutWriter
+from spoil_torchrl.eval.metrics import episode_metrics
+
+#: Per-evaluation metrics (means over the evaluation's episodes) that :class:`Evaluator` reports.
+METRICS = (
+    "return",
+    "cost",
+    "feasible_return",
+    "strict_feasible_return",
+    "normalized_return",
+    "normalized_feasible_return",
+    "normalized_cost",
+)
+
+
+def pad_episodes(arrays: Mapping[str, np.ndarray]) -> TensorDict:
+    """DSRL arrays (episodes back to back) as a padded ``[episodes, steps]`` TensorDict with a ``mask``.
+
+    Examples:
+        >>> arrays = {"observations": np.zeros((3, 1)), "actions": np.zeros((3, 1)),
+        ...           "rewards": np.array([1.0, 2.0, 3.0]), "costs": np.zeros(3),
+        ...           "terminals": np.array([False, True, False]), "timeouts": np.array([False, False, True])}
+        >>> pad_episodes(arrays)["mask"].tolist()
+        [[True, True], [True, False]]
+    """
+    ends = np.flatnonzero(np.asarray(arrays["terminals"]) | np.asarray(arrays["timeouts"])) + 1
+    if ends.size == 0 or ends[-1] != len(arrays["rewards"]):
+        raise ValueError("the arrays do not end with a finished episode")
+    starts = np.concatenate([[0], ends[:-1]])
+    lengths = ends - starts
+    n, t = len(lengths), int(lengths.max())
+    index = torch.arange(t).expand(n, t)
+    mask = index < torch.as_tensor(lengths).unsqueeze(-1)
+    first = torch.as_tensor(starts).unsqueeze(-1)
+    rows = torch.where(mask, first + index, first)  # padding rows point at the episode's first step
+
+    def gather(key: str, dtype) -> torch.Tensor:
+        values = torch.as_tensor(np.asarray(arrays[key]), dtype=dtype)[rows]
+        valid = mask.reshape(*mask.shape, *[1] * (values.ndim - 2))
+        return torch.where(valid, values, torch.zeros((), dtype=dtype))
+
+    return TensorDict(
+        {
+            "observation": gather("observations", torch.float32),
+            "action": gather("actions", torch.float32),
+            "next": {
+                "reward": gather("rewards", torch.float64),
+                "cost": gather("costs", torch.float64),
+                "terminated": gather("terminals", torch.bool),
+                "truncated": gather("timeouts", torch.bool),
+            },
+            "mask": mask,
+        },
+        batch_size=[n, t],
+    )
+
+
+class Evaluator:
+    """Runs ``episodes`` deterministic episodes of a policy in ``env_id`` and reports the paper's metrics.
+
+    Each call rolls the policy out (:func:`spoil_torchrl.data.collect.rollout` with the policy's deterministic
+    action, the same ``seed`` every time so that evaluations differ only by the policy), computes the per-episode
+    metrics with :func:`~spoil_torchrl.eval.episode_metrics` (return, cost, feasible return and its strict
+    variant, normalised return / feasible return / cost), writes every episode to ``writer`` (an MCAP
+    :class:`~spoil_torchrl.eval.RolloutWriter`) when given, and returns the means over episodes.
+
+    Args:
+        env_id: task of :data:`spoil_torchrl.tasks.ENV_TASKS`.
+        cost_threshold: threshold of the feasible return and the normalised cost.
+        return_range: ``(R_min, R_max)`` of the normalised return.
+        episodes: episodes per evaluation.
+        seed: environment seed of every evaluation.
+        writer: where to write the episodes (optional).
+    """
+
+    def __init__(
+        self,
+        env_id: str,
+        *,
+        cost_threshold: float,
+        return_range: tuple[float, float],
+        episodes: int = 10,
+        seed: int = 0,
+        num_envs: int = 10,
+        writer: RolloutWriter | None = None,
+    ) -> None:
+        if episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {episodes}")
+        lo, hi = (float(v) for v in return_range)
+        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            raise ValueError(
+                f"return_range must be two finite numbers with R_max > R_min, got {return_range}"
+            )
+        self.env_id = env_id
+        self.cost_threshold = float(cost_threshold)
+        self.return_range = (lo, hi)
+        self.episodes = int(episodes)
+        self.seed = int(seed)
+        self.num_envs = int(num_envs)
+        self.writer = writer
+
+    def __call__(self, policy: ProbabilisticActor, step: int = 0) -> dict:
+        """Evaluate ``policy``; returns ``{"step", <metric>: mean over episodes, "episodes": per-episode lists}``."""
+        from spoil_torchrl.data.collect import rollout
+
+        was_training = policy.training
+        policy.eval()
+        try:
+            arrays = rollout(
+                self.env_id,
+                policy,
+                self.episodes,
+                seed=self.seed,
+                num_envs=self.num_envs,
+                deterministic=True,
+                progress=False,
+            )
+        finally:
+            policy.train(was_training)
+        padded = pad_episodes(arrays)
+        metrics = episode_metrics(padded, self.cost_threshold, return_range=self.return_range)
+        if self.writer is not None:
+            for e in range(padded.shape[0]):
+                n = int(metrics["length"][e])
+                self.writer.write_episode(padded[e, :n], evaluation_step=step)
+        result = {"step": int(step)}
+        result.update({key: float(metrics[key].mean()) for key in METRICS})
+        result["episodes"] = {key: metrics[key].tolist() for key in (*METRICS, "length")}
+        return result

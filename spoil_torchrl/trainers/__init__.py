@@ -1,0 +1,10 @@
+"""Training loops: TorchRL Trainer glue for offline learning."""
+
+from spoil_torchrl.trainers.offline import (
+    MultiLossStepper,
+    OfflineBatchSource,
+    SampleBuffers,
+    offline_trainer,
+)
+
+__all__ = ["MultiLossStepper", "OfflineBatchSource", "SampleBuffers", "offline_trainer"]

@@ -1,0 +1,157 @@
+"""Each algorithm of the DSRL recipe as (optional) pre-training plus one :class:`MultiLossStepper`.
+
+An algorithm builder takes the algorithm's settings (a mapping, e.g. the Hydra ``algo`` group), the
+:class:`~spoil_torchrl.data.DualDemoBuffers` and the observation / action sizes, does whatever must happen
+before the policy is trained (SpoilDICE: stage 1 of Algorithm 1 -- the discriminators C_P and C_S, the support
+cut, and the one-time annotation of the unlabeled storage), and returns :class:`PolicyTraining`: the losses
+and optimisers of the main stage and the loss that owns the policy. ``ALGORITHMS`` maps the ``algo.name`` of
+the recipe to its builder; adding a baseline means adding a builder here and a config in ``configs/algo/``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torchrl.modules import ProbabilisticActor
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.data.buffers import DualDemoBuffers
+from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
+from spoil_torchrl.objectives import PUDiscriminatorLoss, SpoilDICELoss, SupportEstimator, WeightedBCLoss
+from spoil_torchrl.trainers.offline import MultiLossStepper, offline_trainer
+
+
+@dataclass
+class PolicyTraining:
+    """What the recipe trains in its main stage.
+
+    Attributes:
+        stepper: the optimisation step (losses in order, their optimisers and schedules).
+        policy_loss: the loss holding the policy (``actor_network`` / ``actor_network_params``).
+        diagnostics: extra numbers measured before the main stage (e.g. the support share of D_U).
+    """
+
+    stepper: MultiLossStepper
+    policy_loss: LossModule
+    diagnostics: dict[str, float]
+
+    @contextlib.contextmanager
+    def policy(self) -> Iterator[ProbabilisticActor]:
+        """The current policy as a plain module (the loss's functional parameters put in place)."""
+        loss = self.policy_loss
+        with loss.actor_network_params.to_module(loss.actor_network):
+            yield loss.actor_network
+
+
+def _actor(cfg: Mapping[str, Any], obs_dim: int, act_dim: int) -> ProbabilisticActor:
+    return make_actor(
+        obs_dim, act_dim, hidden_cells=tuple(cfg["hidden_cells"]), distribution=cfg["distribution"]
+    )
+
+
+def _adam(params, lr: float) -> torch.optim.Adam:
+    return torch.optim.Adam(list(params), lr=float(lr))
+
+
+def train_discriminators(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    positives: tuple[str, ...] = ("performant", "safe"),
+    logger=None,
+    progress: bool = True,
+) -> dict[str, PUDiscriminatorLoss]:
+    """Algorithm 1, "pretrain C_P and C_S": one :class:`PUDiscriminatorLoss` per positive role against
+    ``"unlabeled"`` (Eq. 16-17), trained for ``cfg["steps"]`` steps with Adam (``cfg["lr"]``) through the
+    offline :class:`~torchrl.trainers.Trainer`. ``cfg["gradient_penalty"]`` maps each role to its penalty
+    coefficient (Table J: 10 for C_P, none for C_S)."""
+    penalties = cfg["gradient_penalty"]
+    missing = [role for role in positives if role not in penalties]
+    if missing:
+        raise ValueError(f"discriminator.gradient_penalty has no coefficient for {missing}")
+    losses = {
+        f"disc_{role}": PUDiscriminatorLoss(
+            make_discriminator(obs_dim, act_dim, hidden_cells=tuple(cfg["hidden_cells"])),
+            positive=role,
+            gradient_penalty=float(penalties[role]),
+        )
+        for role in positives
+    }
+    optimizers = [_adam(loss.parameters(), cfg["lr"]) for loss in losses.values()]
+    trainer = offline_trainer(
+        MultiLossStepper(losses, optimizers),
+        buffers.sample,
+        total_steps=int(cfg["steps"]),
+        steps_per_batch=min(100, int(cfg["steps"])),
+        logger=logger,
+        progress_bar=progress,
+    )
+    trainer.train()
+    return {name.removeprefix("disc_"): loss for name, loss in losses.items()}
+
+
+def build_spoildice(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """SpoilDICE (Algorithm 1). Stage 1: C_P and C_S (Eq. 16-17), log r_P (Eq. 18), the kappa-quantile support
+    cut fitted on D_S (Eq. 13), and D_U annotated once with ``log_ratio_performant`` and ``safe_support``.
+    Main stage: (nu, lambda) by Eq. (19) and pi by weighted BC on D_U (Eq. 20)."""
+    discriminators = train_discriminators(
+        cfg["discriminator"], buffers, obs_dim, act_dim, logger=logger, progress=progress
+    )
+    ratio_p = discriminators["performant"].log_ratio_module("log_ratio_performant")
+    support = SupportEstimator(
+        discriminators["safe"].get_stateful_net("discriminator_network", copy=True), kappa=float(cfg["kappa"])
+    ).fit(buffers["safe"].storage[:])
+    buffers.annotate("unlabeled", ratio_p)
+    buffers.annotate("unlabeled", support)
+    unlabeled = buffers["unlabeled"].storage[:]
+    diagnostics = {
+        "support_share_unlabeled": float(unlabeled["safe_support"].float().mean()),
+        "support_threshold": float(support.threshold),
+        "log_ratio_performant_mean": float(unlabeled["log_ratio_performant"].float().mean()),
+    }
+    dice = SpoilDICELoss(
+        make_value_network(obs_dim, hidden_cells=tuple(cfg["hidden_cells"])),
+        gamma=float(cfg["gamma"]),
+        gradient_penalty=float(cfg["nu_gradient_penalty"]),
+        init_lagrange=float(cfg["init_lagrange"]),
+    )
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="dice_weight")
+    optimizers = [
+        _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
+        _adam([dice.lagrange], cfg["lagrange_lr"]),
+        _adam(policy_loss.parameters(), cfg["actor_lr"]),
+    ]
+    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
+def build_bc(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """BC: maximum likelihood on D_P (``cfg["role"]``, default ``"performant"``), no pre-training."""
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=cfg.get("role", "performant"))
+    stepper = MultiLossStepper({"actor": policy_loss}, [_adam(policy_loss.parameters(), cfg["actor_lr"])])
+    return PolicyTraining(stepper, policy_loss, {})
+
+
+ALGORITHMS: dict[str, Callable[..., PolicyTraining]] = {"spoildice": build_spoildice, "bc": build_bc}

@@ -1,0 +1,188 @@
+"""Offline training with :class:`torchrl.trainers.Trainer`: a batch source in place of the collector and one
+optimisation step for several LossModules and optimisers.
+
+TorchRL's :class:`~torchrl.trainers.Trainer` is built around a data collector: it iterates over the collector,
+counts the collected frames, and runs ``optim_steps_per_batch`` optimisation steps per collected batch. Offline
+there is nothing to collect, so :class:`OfflineBatchSource` yields empty TensorDicts whose batch size is the
+number of optimisation steps they stand for: the Trainer's frame counter then counts optimisation steps, its
+progress bar, logging interval and hooks work unchanged, and every optimisation step draws its own batch from
+the replay buffers through a ``process_optim_batch`` hook (:class:`SampleBuffers`). :class:`MultiLossStepper`
+(a TorchRL :class:`~torchrl.trainers.OptimizationStepper`) evaluates several LossModules in order on that batch
+and steps all their optimisers; because each ``loss_*`` term reaches only its own parameters (TorchRL's
+convention, tested for every loss of this package), one backward pass through their sum equals one backward
+pass per optimiser.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.objectives import LossModule
+from torchrl.trainers import OptimizationStepper, Trainer
+
+
+class OfflineBatchSource:
+    """Stands in for a TorchRL collector in :class:`~torchrl.trainers.Trainer` for offline training.
+
+    Yields ``TensorDict(batch_size=[n])`` chunks with ``n = steps_per_batch`` (the last one smaller) until
+    ``total_steps``: with ``frame_skip=1`` and ``optim_steps_per_batch=steps_per_batch`` the Trainer's
+    "frames" are optimisation steps.
+
+    Examples:
+        >>> [chunk.batch_size[0] for chunk in OfflineBatchSource(total_steps=5, steps_per_batch=2)]
+        [2, 2, 1]
+    """
+
+    init_random_frames = 0
+
+    def __init__(self, total_steps: int, steps_per_batch: int) -> None:
+        if total_steps < 1 or steps_per_batch < 1:
+            raise ValueError(
+                f"total_steps and steps_per_batch must be >= 1, got {total_steps} and {steps_per_batch}"
+            )
+        self.total_steps = int(total_steps)
+        self.steps_per_batch = int(steps_per_batch)
+        self.steps = 0
+
+    def __iter__(self) -> Iterator[TensorDict]:
+        while self.steps < self.total_steps:
+            n = min(self.steps_per_batch, self.total_steps - self.steps)
+            self.steps += n
+            yield TensorDict(batch_size=[n])
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        return seed
+
+    def shutdown(self) -> None:
+        pass
+
+    def update_policy_weights_(self, *args, **kwargs) -> None:
+        pass
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"steps": self.steps}
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        self.steps = int(state_dict["steps"])
+
+
+class SampleBuffers:
+    """``process_optim_batch`` hook: replaces the placeholder chunk by a fresh replay-buffer sample per step.
+
+    ``sample`` is e.g. :meth:`spoil_torchrl.data.DualDemoBuffers.sample` (one batch per role).
+    """
+
+    def __init__(self, sample: Callable[[], TensorDictBase]) -> None:
+        self.sample = sample
+
+    def __call__(self, batch: TensorDictBase) -> TensorDictBase:
+        return self.sample()
+
+
+class MultiLossStepper(OptimizationStepper):
+    """One optimisation step of several LossModules with their own optimisers (and LR schedules).
+
+    The losses run in the given order on the same batch, so a loss may read what an earlier one wrote into it
+    (:class:`~spoil_torchrl.objectives.SpoilDICELoss` writes the weights that
+    :class:`~spoil_torchrl.objectives.WeightedBCLoss` reads). Returns the scalar entries of every loss output,
+    detached, named ``<loss name>.<entry>``.
+
+    Args:
+        losses: name -> LossModule.
+        optimizers: every optimiser over the losses' parameters.
+        schedulers: LR schedulers stepped after the optimisers.
+    """
+
+    def __init__(
+        self,
+        losses: Mapping[str, LossModule],
+        optimizers: Sequence[torch.optim.Optimizer],
+        schedulers: Sequence[torch.optim.lr_scheduler.LRScheduler] = (),
+    ) -> None:
+        if not losses or not optimizers:
+            raise ValueError("MultiLossStepper needs at least one loss and one optimizer")
+        self.losses = dict(losses)
+        self.optimizers = list(optimizers)
+        self.schedulers = list(schedulers)
+
+    def step(self, trainer: Trainer, sub_batch: TensorDictBase) -> TensorDictBase:
+        outputs = {name: loss(sub_batch) for name, loss in self.losses.items()}
+        total = sum(
+            value for out in outputs.values() for key, value in out.items() if key.startswith("loss_")
+        )
+        for optimizer in self.optimizers:
+            optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        for optimizer in self.optimizers:
+            optimizer.step()
+        for scheduler in self.schedulers:
+            scheduler.step()
+        return TensorDict(
+            {
+                f"{name}.{key}": value.detach().float().mean()
+                for name, out in outputs.items()
+                for key, value in out.items()
+                if value.numel() == 1
+            },
+            batch_size=[],
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "losses": {name: loss.state_dict() for name, loss in self.losses.items()},
+            "optimizers": [o.state_dict() for o in self.optimizers],
+            "schedulers": [s.state_dict() for s in self.schedulers],
+        }
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        for name, loss in self.losses.items():
+            loss.load_state_dict(state_dict["losses"][name])
+        for o, s in zip(self.optimizers, state_dict["optimizers"], strict=True):
+            o.load_state_dict(s)
+        for o, s in zip(self.schedulers, state_dict["schedulers"], strict=True):
+            o.load_state_dict(s)
+
+
+def offline_trainer(
+    stepper: MultiLossStepper,
+    sample: Callable[[], TensorDictBase],
+    *,
+    total_steps: int,
+    steps_per_batch: int = 100,
+    logger=None,
+    log_interval: int = 100,
+    progress_bar: bool = True,
+) -> Trainer:
+    """A :class:`~torchrl.trainers.Trainer` that runs ``total_steps`` offline optimisation steps of ``stepper``,
+    each on a fresh ``sample()``. Register further hooks (evaluation, checkpoints) with ``register_op``.
+
+    Examples:
+        >>> from torch import nn
+        >>> from spoil_torchrl.modules import make_actor
+        >>> from spoil_torchrl.objectives import WeightedBCLoss
+        >>> loss = WeightedBCLoss(make_actor(3, 2, hidden_cells=(8,)), role="performant")
+        >>> stepper = MultiLossStepper({"bc": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)])
+        >>> data = lambda: TensorDict({"performant": TensorDict({"observation": torch.randn(16, 3),
+        ...                                                      "action": torch.rand(16, 2) * 2 - 1}, [16])}, [])
+        >>> trainer = offline_trainer(stepper, data, total_steps=20, steps_per_batch=10, progress_bar=False)
+        >>> trainer.train()
+        >>> trainer.collected_frames
+        20
+    """
+    trainer = Trainer(
+        collector=OfflineBatchSource(total_steps, steps_per_batch),
+        total_frames=total_steps,
+        frame_skip=1,
+        optim_steps_per_batch=steps_per_batch,
+        loss_module=lambda td: td,
+        optimization_stepper=stepper,
+        logger=logger,
+        log_interval=log_interval,
+        progress_bar=progress_bar,
+        clip_grad_norm=False,
+    )
+    trainer.register_op("process_optim_batch", SampleBuffers(sample))
+    return trainer

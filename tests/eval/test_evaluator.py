@@ -1,0 +1,52 @@
+"""The evaluator in the real environment: deterministic episodes, metrics, MCAP output."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from spoil_torchrl.eval import Evaluator, RolloutWriter, pad_episodes, read_rollouts
+
+
+def test_pad_episodes_masks_and_rejects_unfinished():
+    arrays = {
+        "observations": np.arange(5, dtype=np.float32).reshape(5, 1),
+        "actions": np.zeros((5, 1), np.float32),
+        "rewards": np.array([1.0, 2.0, 3.0, 4.0, 5.0]),
+        "costs": np.array([0.0, 1.0, 0.0, 0.0, 1.0]),
+        "terminals": np.array([False, True, False, False, False]),
+        "timeouts": np.array([False, False, False, False, True]),
+    }
+    td = pad_episodes(arrays)
+    assert td.batch_size == (2, 3)
+    assert td["next", "reward"].tolist() == [[1.0, 2.0, 0.0], [3.0, 4.0, 5.0]]
+    assert td["next", "terminated"][0, 1] and td["next", "truncated"][1, 2]
+    arrays["timeouts"] = np.zeros(5, bool)
+    with pytest.raises(ValueError, match="finished episode"):
+        pad_episodes(arrays)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("safety_gymnasium") is None, reason="safety-gymnasium missing")
+def test_evaluator_metrics_and_mcap(tmp_path):
+    from spoil_torchrl.experts import load_policy, zoo_policy
+
+    policy, _ = load_policy(zoo_policy("SafetyPointCircle1-v0", "unsafe-high"))
+    with RolloutWriter(tmp_path / "r.mcap", cost_threshold=25.0) as writer:
+        evaluator = Evaluator(
+            "SafetyPointCircle1-v0", cost_threshold=25.0, return_range=(0.0, 40.0), episodes=2, writer=writer
+        )
+        first = evaluator(policy, step=10)
+        second = evaluator(policy, step=20)
+    # deterministic actions and the same seed: the same episodes
+    assert first["return"] == second["return"] and first["cost"] == second["cost"]
+    assert first["cost"] > 25.0 and first["feasible_return"] < first["return"]  # the unconstrained expert
+    assert first["normalized_cost"] == pytest.approx(first["cost"] / 25.0)
+    assert first["normalized_return"] == pytest.approx(first["return"] / 40.0)
+    assert first["episodes"]["length"] == [500, 500]
+    rollouts = read_rollouts(tmp_path / "r.mcap")
+    assert rollouts.episodes.shape[0] == 4
+    assert rollouts.episodes["return"][:2].tolist() == pytest.approx(first["episodes"]["return"])
+    with pytest.raises(ValueError, match="return_range"):
+        Evaluator("SafetyPointCircle1-v0", cost_threshold=25.0, return_range=(1.0, 1.0))

@@ -1,0 +1,114 @@
+"""The offline Trainer glue: batch source, several losses and optimisers in one step, hooks, the builders."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from spoil_torchrl.modules import make_actor, make_value_network
+from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
+from spoil_torchrl.trainers import MultiLossStepper, OfflineBatchSource, offline_trainer
+from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
+
+
+def test_batch_source_counts_steps_and_validates():
+    source = OfflineBatchSource(total_steps=250, steps_per_batch=100)
+    assert [c.batch_size[0] for c in source] == [100, 100, 50]
+    assert source.state_dict() == {"steps": 250}
+    with pytest.raises(ValueError, match="total_steps"):
+        OfflineBatchSource(0, 10)
+
+
+def _spoildice_stepper():
+    dice = SpoilDICELoss(make_value_network(OBS_DIM, hidden_cells=(16,)), gradient_penalty=1.0)
+    actor = WeightedBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(16,)), role="unlabeled", weight="dice_weight"
+    )
+    optims = [
+        torch.optim.Adam(dice.nu_network_params.values(True, True), lr=1e-2),
+        torch.optim.Adam([dice.lagrange], lr=1e-2),
+        torch.optim.Adam(actor.parameters(), lr=1e-2),
+    ]
+    return MultiLossStepper({"dice": dice, "actor": actor}, optims), dice, actor
+
+
+def test_stepper_updates_every_loss_and_chains_outputs():
+    stepper, dice, actor = _spoildice_stepper()
+    before = [p.detach().clone() for p in (*dice.parameters(), *actor.parameters())]
+    batch = dual_batch()
+    out = stepper.step(None, batch)
+    after = list((*dice.parameters(), *actor.parameters()))
+    assert all(not torch.equal(a, b) for a, b in zip(before, after, strict=True))
+    # the actor loss read the weights the dice loss wrote into the same batch
+    assert "dice_weight" in batch["unlabeled"].keys()
+    assert {"dice.loss_nu", "dice.loss_lambda", "actor.loss_actor"} <= set(out.keys())
+    assert all(v.ndim == 0 and not v.requires_grad for v in out.values())
+
+
+def test_stepper_state_dict_round_trip():
+    stepper, dice, _ = _spoildice_stepper()
+    stepper.step(None, dual_batch())
+    state = stepper.state_dict()
+    other, other_dice, _ = _spoildice_stepper()
+    other.load_state_dict(state)
+    assert torch.equal(other_dice.lagrange, dice.lagrange)
+    assert (
+        other.optimizers[0].state_dict()["state"].keys() == stepper.optimizers[0].state_dict()["state"].keys()
+    )
+
+
+def test_offline_trainer_runs_the_steps_and_the_hooks():
+    stepper, dice, _ = _spoildice_stepper()
+    samples, calls = [], []
+
+    def sample():
+        samples.append(1)
+        return dual_batch()
+
+    def hook(batch):
+        calls.append(trainer.collected_frames)
+
+    trainer = offline_trainer(stepper, sample, total_steps=30, steps_per_batch=10, progress_bar=False)
+    trainer.register_op("post_steps_log", hook)
+    trainer.train()
+    assert len(samples) == 30 and calls == [10, 20, 30]
+    with pytest.raises(ValueError, match="at least one"):
+        MultiLossStepper({}, [])
+
+
+def test_builders_train_spoildice_and_bc(tiny_pc1_dataset):
+    from spoil_torchrl.data import DualDemoBuffers, load_episodes
+    from spoil_torchrl.trainers.algorithms import ALGORITHMS
+
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
+    buffers = DualDemoBuffers(episodes, roles, batch_size=64, seed=0)
+    cfg = {
+        "distribution": "normal",
+        "hidden_cells": [16],
+        "gamma": 0.99,
+        "kappa": 0.01,
+        "nu_gradient_penalty": 10.0,
+        "init_lagrange": 0.0,
+        "nu_lr": 1e-3,
+        "lagrange_lr": 1e-3,
+        "actor_lr": 1e-3,
+        "discriminator": {
+            "hidden_cells": [16],
+            "gradient_penalty": {"performant": 10.0, "safe": 0.0},
+            "lr": 1e-3,
+            "steps": 5,
+        },
+    }
+    training = ALGORITHMS["spoildice"](cfg, buffers, 28, 2, progress=False)
+    unlabeled = buffers["unlabeled"].storage[:]
+    assert {"log_ratio_performant", "safe_support"} <= set(unlabeled.keys())
+    assert 0.0 < training.diagnostics["support_share_unlabeled"] <= 1.0
+    out = training.stepper.step(None, buffers.sample())
+    assert torch.isfinite(out["dice.loss_nu"]) and torch.isfinite(out["actor.loss_actor"])
+    with training.policy() as policy:
+        td = policy(TensorDict({"observation": torch.zeros(3, 28)}, [3]))
+    assert td["action"].shape == (3, 2)
+    bc = ALGORITHMS["bc"]({"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}, buffers, 28, 2)
+    assert set(bc.stepper.step(None, buffers.sample()).keys()) >= {"actor.loss_actor"}
