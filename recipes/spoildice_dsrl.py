@@ -109,6 +109,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     write_json(run_dir / "results.json", results)
 
     # Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U).
+    if cfg.algo.name not in ALGORITHMS:
+        raise ValueError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     training = ALGORITHMS[cfg.algo.name](
         cfg.algo, buffers, obs_dim, act_dim, logger=logger, progress=cfg.progress
     )

@@ -112,9 +112,7 @@ def build_spoildice(
         cfg["discriminator"], buffers, obs_dim, act_dim, logger=logger, progress=progress
     )
     ratio_p = discriminators["performant"].log_ratio_module("log_ratio_performant")
-    support = SupportEstimator(
-        discriminators["safe"].get_stateful_net("discriminator_network", copy=True), kappa=float(cfg["kappa"])
-    ).fit(buffers["safe"].storage[:])
+    support = _fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
     buffers.annotate("unlabeled", ratio_p)
     buffers.annotate("unlabeled", support)
     unlabeled = buffers["unlabeled"].storage[:]
@@ -154,4 +152,71 @@ def build_bc(
     return PolicyTraining(stepper, policy_loss, {})
 
 
-ALGORITHMS: dict[str, Callable[..., PolicyTraining]] = {"spoildice": build_spoildice, "bc": build_bc}
+def _fit_support(
+    loss: PUDiscriminatorLoss, buffers: DualDemoBuffers, role: str, kappa: float, out_key: str
+) -> SupportEstimator:
+    """Eq. (13) on ``role``'s discriminator: the kappa-quantile cut of its log-ratio over ``role``'s data."""
+    net = loss.get_stateful_net("discriminator_network", copy=True)
+    return SupportEstimator(net, kappa=kappa, out_key=out_key).fit(buffers[role].storage[:])
+
+
+def build_fbc(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """Filtered BC (paper section 5, Table B): NLL on D_P weighted by the estimated safe support 1_S (C_S
+    against D_U, the kappa cut on D_S), i.e. BC on the performant transitions inside the safe support."""
+    discriminators = train_discriminators(
+        cfg["discriminator"], buffers, obs_dim, act_dim, positives=("safe",), logger=logger, progress=progress
+    )
+    support = _fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
+    buffers.annotate("performant", support)
+    share = float(buffers["performant"].storage[:]["safe_support"].float().mean())
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="performant", weight="safe_support")
+    stepper = MultiLossStepper({"actor": policy_loss}, [_adam(policy_loss.parameters(), cfg["actor_lr"])])
+    return PolicyTraining(stepper, policy_loss, {"support_share_performant": share})
+
+
+def build_jfbc(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """Joint filtered BC (paper section 5): NLL on D_U weighted by 1_S * 1_P, both kappa cuts (Eq. 13) of
+    discriminators trained against D_U (C_S on D_S, C_P on D_P)."""
+    discriminators = train_discriminators(
+        cfg["discriminator"], buffers, obs_dim, act_dim, logger=logger, progress=progress
+    )
+    kappa = float(cfg["kappa"])
+    buffers.annotate("unlabeled", _fit_support(discriminators["safe"], buffers, "safe", kappa, "safe_support"))
+    buffers.annotate(
+        "unlabeled",
+        _fit_support(discriminators["performant"], buffers, "performant", kappa, "performant_support"),
+    )
+    buffers.annotate("unlabeled", "jfbc_weight", lambda td: td["safe_support"] * td["performant_support"])
+    unlabeled = buffers["unlabeled"].storage[:]
+    diagnostics = {
+        "support_share_unlabeled": float(unlabeled["safe_support"].float().mean()),
+        "performant_share_unlabeled": float(unlabeled["performant_support"].float().mean()),
+        "jfbc_share_unlabeled": float(unlabeled["jfbc_weight"].float().mean()),
+    }
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="jfbc_weight")
+    stepper = MultiLossStepper({"actor": policy_loss}, [_adam(policy_loss.parameters(), cfg["actor_lr"])])
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
+ALGORITHMS: dict[str, Callable[..., PolicyTraining]] = {
+    "spoildice": build_spoildice,
+    "bc": build_bc,
+    "fbc": build_fbc,
+    "jfbc": build_jfbc,
+}

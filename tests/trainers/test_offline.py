@@ -112,3 +112,25 @@ def test_builders_train_spoildice_and_bc(tiny_pc1_dataset):
     assert td["action"].shape == (3, 2)
     bc = ALGORITHMS["bc"]({"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}, buffers, 28, 2)
     assert set(bc.stepper.step(None, buffers.sample()).keys()) >= {"actor.loss_actor"}
+
+
+def test_filtered_bc_builders_weight_by_the_estimated_supports(tiny_pc1_dataset):
+    from spoil_torchrl.data import DualDemoBuffers, load_episodes
+    from spoil_torchrl.trainers.algorithms import ALGORITHMS
+
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    # safe: the safe-high episodes 0-2; performant: safe-high 2 and unsafe-high 6-7 (ids by policy type)
+    roles = {"safe": torch.tensor([0, 1, 2]), "performant": torch.tensor([2, 6, 7]), "unlabeled": torch.arange(12)}
+    buffers = DualDemoBuffers(episodes, roles, batch_size=64, seed=0)
+    disc = {"hidden_cells": [16], "lr": 1e-3, "steps": 5, "gradient_penalty": {"performant": 0.0, "safe": 0.0}}
+    common = {"distribution": "normal", "hidden_cells": [16], "kappa": 0.01, "actor_lr": 1e-3}
+    fbc = ALGORITHMS["fbc"]({**common, "discriminator": disc}, buffers, 28, 2, progress=False)
+    support = buffers["performant"].storage[:]["safe_support"]
+    assert set(support.unique().tolist()) <= {0.0, 1.0}
+    assert fbc.diagnostics["support_share_performant"] == pytest.approx(float(support.float().mean()))
+    assert fbc.policy_loss.tensor_keys.weight == "safe_support"
+    jfbc = ALGORITHMS["jfbc"]({**common, "discriminator": disc}, buffers, 28, 2, progress=False)
+    unlabeled = buffers["unlabeled"].storage[:]
+    assert torch.equal(unlabeled["jfbc_weight"], unlabeled["safe_support"] * unlabeled["performant_support"])
+    out = jfbc.stepper.step(None, buffers.sample())
+    assert torch.isfinite(out["actor.loss_actor"])
