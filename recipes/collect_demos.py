@@ -31,8 +31,8 @@ def main(cfg: DictConfig) -> None:
     print(
         f"{cfg.dataset}: {spec.episodes} episodes of {spec.env_id}, {meta['steps']} steps, in {path}\n"
         f"(made in {meta['seconds']:.0f} s = {meta['steps'] / meta['seconds']:.0f} steps/s; this call "
-        f"{time.perf_counter() - start:.0f} s); random-policy return {meta['random_return']:.2f}, "
-        f"safe-high return {meta['safe_high_return']:.2f}\n"
+        f"{time.perf_counter() - start:.0f} s); random-policy return {meta['random_return']}, "
+        f"safe-high return {meta['safe_high_return']}\n"
     )
     print(policy_table(episodes, segment_pools(meta), cost_threshold=meta["cost_threshold"]))
 

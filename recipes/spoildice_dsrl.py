@@ -57,8 +57,23 @@ def _json_safe(value):
 def write_json(path: Path, payload: dict) -> None:
     """Write ``payload`` atomically (a reader never sees half a file)."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_json_safe(payload), indent=2))
+    tmp.write_text(json.dumps(_json_safe(payload), indent=2, allow_nan=False))
     os.replace(tmp, path)
+
+
+def save_atomic(obj, path: Path) -> None:
+    """``torch.save`` through a temporary file, so a killed run never leaves half a checkpoint."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def check_train_settings(train) -> None:
+    """Fail before any training on settings that would only break at the first evaluation."""
+    for key in ("steps", "eval_interval", "eval_episodes", "last_evaluations", "batch_size"):
+        if int(train[key]) < 1:
+            raise ValueError(f"train.{key} must be >= 1, got {train[key]}")
 
 
 def aggregate(evaluations: list[dict], last: int) -> dict:
@@ -85,6 +100,9 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     config_hash = hashlib.sha256(config_yaml.encode()).hexdigest()[:12]
     task = get_env_task(cfg.task.env_id)
     train = cfg.train
+    check_train_settings(train)
+    if cfg.algo.name not in ALGORITHMS:
+        raise ValueError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
 
     # Input: D_S, D_P, D_U (episode ids of one dataset) and the initial states D_0.
     data = prepare_dataset(cfg.dataset, env_id=task.env_id, seed=int(cfg.seed), progress=cfg.progress)
@@ -95,6 +113,14 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
             f"{task.observation_dim}/{task.action_dim}"
         )
     buffers = DualDemoBuffers(data.episodes, data.roles, batch_size=int(train.batch_size), seed=int(cfg.seed))
+    evaluator = Evaluator(  # built (and its settings checked) before any training
+        task.env_id,
+        cost_threshold=data.cost_threshold,
+        return_range=data.return_range,
+        episodes=int(train.eval_episodes),
+        seed=10_000 + int(cfg.seed),
+        num_envs=int(cfg.task.eval_num_envs),
+    )
     logger = make_logger(cfg, run_dir)
     results = {
         "algo": cfg.algo.name,
@@ -108,26 +134,25 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     }
     write_json(run_dir / "results.json", results)
 
+    try:
+        return _train(cfg, run_dir, results, buffers, evaluator, logger, obs_dim, act_dim, start)
+    except BaseException as err:  # keep what was done, say why it stopped, re-raise
+        results["status"] = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
+        results["error"] = f"{type(err).__name__}: {err}"
+        write_json(run_dir / "results.json", results)
+        raise
+
+
+def _train(cfg, run_dir, results, buffers, evaluator, logger, obs_dim, act_dim, start) -> dict:
+    task, train, config_hash = get_env_task(cfg.task.env_id), cfg.train, results["config_hash"]
+
     # Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U).
-    if cfg.algo.name not in ALGORITHMS:
-        raise ValueError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     training = ALGORITHMS[cfg.algo.name](
         cfg.algo, buffers, obs_dim, act_dim, logger=logger, progress=cfg.progress
     )
     results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - start)
 
     # Optimise the main stage with the TorchRL Trainer; evaluate every eval_interval steps.
-    metadata = {"task": task.env_id, "algo": cfg.algo.name, "seed": cfg.seed, "config_hash": config_hash}
-    writer = RolloutWriter(run_dir / "rollouts.mcap", cost_threshold=data.cost_threshold, metadata=metadata)
-    evaluator = Evaluator(
-        task.env_id,
-        cost_threshold=data.cost_threshold,
-        return_range=data.return_range,
-        episodes=int(train.eval_episodes),
-        seed=10_000 + int(cfg.seed),
-        num_envs=int(cfg.task.eval_num_envs),
-        writer=writer,
-    )
     checkpoints = run_dir / "checkpoints"
     total, interval = int(train.steps), int(train.eval_interval)
     results["status"] = "training"
@@ -148,7 +173,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
                     info={"step": step, "algo": cfg.algo.name, "config_hash": config_hash},
                 )
         if train.checkpoint:
-            torch.save({"step": step, **training.stepper.state_dict()}, checkpoints / "training_state.pt")
+            save_atomic({"step": step, **training.stepper.state_dict()}, checkpoints / "training_state.pt")
         result["seconds"] = time.perf_counter() - train_start
         results["evaluations"].append(result)
         write_json(run_dir / "results.json", results)
@@ -164,10 +189,12 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
         progress_bar=cfg.progress,
     )
     trainer.register_op("post_steps_log", evaluate)
-    try:
+    metadata = {"task": task.env_id, "algo": cfg.algo.name, "seed": cfg.seed, "config_hash": config_hash}
+    with RolloutWriter(
+        run_dir / "rollouts.mcap", cost_threshold=evaluator.cost_threshold, metadata=metadata
+    ) as w:
+        evaluator.writer = w  # every evaluation episode goes to the MCAP file, flushed per episode
         trainer.train()
-    finally:
-        writer.finish()
 
     # Output: results.json with the aggregate, and a small summary table.
     last = min(int(train.last_evaluations), len(results["evaluations"]))

@@ -98,5 +98,20 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
 
 def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
     _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=bc", "logger=none")
-    assert results["algo"] == "bc" and results["diagnostics"] == {}
+    assert results["algo"] == "bc" and results["diagnostics"] == {} and results["status"] == "finished"
+    assert [e["step"] for e in results["evaluations"]] == [100, 200]
+    assert (tmp_path / "checkpoints" / "policy.pt").is_file()
     assert not (tmp_path / "logs").exists()
+
+
+def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dataset):
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "spoildice_dsrl.py"),
+        "preset=smoke",
+        f"dataset.source=file:{tiny_pc1_dataset}",
+        "train.eval_interval=0",
+        f"hydra.run.dir={tmp_path}",
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode != 0 and "train.eval_interval must be >= 1" in proc.stderr

@@ -100,8 +100,7 @@ def rollout(
     task = get_env_task(env_id)
     envs = [make_safety_gymnasium(env_id) for _ in range(min(num_envs, episodes))]
     rng = np.random.default_rng(_derive_seed(seed, 1))
-    for i, env in enumerate(envs):
-        env.action_space.seed(_derive_seed(seed, 2, i))
+    device = next(iter(policy.parameters())).device if policy is not None else torch.device("cpu")
     obs = [env.reset(seed=_derive_seed(seed, 3, i))[0] for i, env in enumerate(envs)]
     steps: list[list[tuple]] = [[] for _ in envs]
     finished: list[list[tuple]] = []
@@ -116,10 +115,12 @@ def rollout(
                 low, high = envs[0].action_space.low, envs[0].action_space.high
                 actions = rng.uniform(low, high, size=(len(active), *low.shape)).astype(np.float32)
             else:
-                td = TensorDict({"observation": torch.from_numpy(batch)}, batch_size=[len(active)])
+                td = TensorDict(
+                    {"observation": torch.from_numpy(batch)}, batch_size=[len(active)], device=device
+                )
                 # an unbounded (Normal) policy's action is clipped to the bounds, and stored clipped
                 space = envs[0].action_space
-                actions = np.clip(policy(td)["action"].numpy(), space.low, space.high)
+                actions = np.clip(policy(td)["action"].cpu().numpy(), space.low, space.high)
             still = []
             for j, i in enumerate(active):
                 next_obs, reward, terminated, truncated, info = envs[i].step(actions[j])
@@ -128,8 +129,9 @@ def rollout(
                 )
                 if terminated or truncated:
                     finished.append(steps[i])
-                    steps[i] = []
+                    # the bar counts T steps per episode: an episode that ends early moves it by T as well
                     bar.update(task.episode_length)
+                    steps[i] = []
                     if started < episodes:
                         obs[i] = envs[i].reset()[0]
                         started += 1
@@ -206,6 +208,20 @@ def collect(
     task = get_env_task(env_id)
     if not segments:
         raise ValueError("collect needs at least one segment")
+    reserved = {
+        "env_id",
+        "seed",
+        "num_envs",
+        "cost_threshold",
+        "segments",
+        "random_return",
+        "safe_high_return",
+        "seconds",
+        "steps",
+    }
+    clash = reserved & set(metadata or {})
+    if clash:
+        raise ValueError(f"metadata may not override the collector's own entries {sorted(clash)}")
     start_time = time.perf_counter()
     parts, records, first = [], [], 0
     for k, segment in enumerate(segments):

@@ -9,7 +9,7 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
 * ``point-circle1-mixed`` -- the **embedded default** of ``recipes/spoildice_dsrl.py``: 600 PointCircle1
   episodes from the four policy types, nine intermediate PPO / PPO-Lagrangian checkpoints and the random
   policy, spanning returns from about 0 to 57 and episode costs from 0 to about 250, like a DSRL dataset
-  (about two minutes to make on 2 cores).
+  (measured: 84 s to make, 3,584 env steps/s with 8 environments in lockstep on one core).
 * ``point-circle1-controlled`` -- the four typed pools of the controlled datasets (F.2), 500 episodes each, so
   that D_U can hold 2,000 trajectories; pick D_S / D_P / D_U with
   :func:`~spoil_torchrl.data.controlled_mix` on :func:`~spoil_torchrl.data.collect.segment_pools`.
@@ -17,7 +17,9 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from spoil_torchrl.data.collect import RANDOM_POLICY, Segment, collect
@@ -37,6 +39,11 @@ class GeneratedDataset:
     @property
     def episodes(self) -> int:
         return sum(s.episodes for s in self.segments)
+
+    def fingerprint(self, num_envs: int) -> str:
+        """A hash of everything that determines the file's content (the recipe and ``num_envs``)."""
+        text = json.dumps([self.env_id, self.seed, num_envs, [asdict(s) for s in self.segments]])
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def _typed(episodes: int) -> tuple[Segment, ...]:
@@ -98,12 +105,24 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
     """The path of the generated dataset ``name``, making it first if it is not cached (or ``force``).
 
     Making it rolls out the committed policies (needs the ``safety`` extra); the file appears only once it is
-    complete. Examples are in ``recipes/collect_demos.py`` and the tests.
+    complete. A cached file made from a different recipe (another segment list, seed or ``num_envs``: its
+    metadata's ``fingerprint`` differs) is made again. Two processes making the same dataset at once both
+    work, and the last one to finish leaves its (identical) file. Examples are in ``recipes/collect_demos.py``
+    and the tests.
     """
+    from spoil_torchrl.data.hdf5 import read_metadata
+
     spec = get_generated(name)
     path = generated_path(name)
+    fingerprint = spec.fingerprint(num_envs)
     if path.exists() and not force:
-        return path
+        cached = read_metadata(path).get("fingerprint")
+        if cached == fingerprint:
+            return path
+        print(
+            f"{path}: made by another recipe (fingerprint {cached}, now {fingerprint}: the segments, seed or "
+            "num_envs changed); making it again"
+        )
     return collect(
         spec.env_id,
         spec.segments,
@@ -111,5 +130,5 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
         seed=spec.seed,
         num_envs=num_envs,
         progress=progress,
-        metadata={"name": spec.name, "description": spec.description},
+        metadata={"name": spec.name, "description": spec.description, "fingerprint": fingerprint},
     )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -102,7 +103,7 @@ def write_dsrl_file(
 ) -> Path:
     """Write ``arrays`` (the DSRL keys) to ``path`` atomically: a killed writer leaves no file that loads.
 
-    The data go to ``<path>.tmp`` first and are renamed into place once complete. ``metadata`` is stored as a
+    The data go to a unique ``<path>.<random>.tmp`` first and are renamed into place once complete. ``metadata`` is stored as a
     JSON attribute. Examples are in the tests; the collection pipeline writes its datasets through here.
     """
     path = Path(path)
@@ -110,7 +111,10 @@ def write_dsrl_file(
     if missing:
         raise DatasetError(f"cannot write {path}: missing array '{missing[0]}'")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    # a unique temporary name: two writers of the same file never share (or publish) each other's half file
+    fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
     try:
         with h5py.File(tmp, "w") as f:
             for key in DSRL_KEYS:

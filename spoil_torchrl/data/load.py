@@ -94,7 +94,10 @@ def load_episodes(
         if rest in GENERATED_DATASETS:
             how = f"make it with `python recipes/collect_demos.py dataset={rest}`"
         else:
-            how = f"known generated datasets: {', '.join(GENERATED_DATASETS)}"
+            how = (
+                f"it is not one of the known generated datasets ({', '.join(GENERATED_DATASETS)}); add it to "
+                "spoil_torchrl/data/generated.py and make it with recipes/collect_demos.py"
+            )
         raise DatasetError(
             f"generated dataset {rest!r} not found at {path}; {how} "
             "(or set SPOIL_TORCHRL_DATA_DIR to where it lives)"

@@ -76,7 +76,8 @@ def select_roles(
 
     * ``"ilsp"`` (F.1): label every episode (safe iff cost <= threshold; performant iff return >= the
       ``return_quantile`` quantile of the safe returns), then draw ``n_safe`` safe and ``n_performant``
-      performant episodes (seeded); D_U = every episode, or ``n_unlabeled`` drawn ones.
+      performant episodes (seeded); D_U = every episode, or ``n_unlabeled`` drawn ones. The two draws are
+      independent: an episode that is both safe and performant may be in both (F.1's labels overlap).
     * ``"controlled"`` (F.2): :func:`~spoil_torchrl.data.controlled_mix` of the file's policy-type pools with
       ``performance`` (share of safe-high in D_S) and ``safeness`` (share of safe-high in D_P).
     """

@@ -114,7 +114,7 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
         raw = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises several types for corrupt / foreign pickles
         raise PolicyFileError(f"{path}: not a policy checkpoint ({type(err).__name__}: {err})") from err
-    if not isinstance(raw, dict) or "actor" not in raw:
+    if not isinstance(raw, dict) or not isinstance(raw.get("actor"), dict):
         raise PolicyFileError(f"{path}: not a policy checkpoint (no 'actor' state dict)")
     state = raw["actor"]
     obs_dim, hidden, act_dim = _sizes_from_weights(state)

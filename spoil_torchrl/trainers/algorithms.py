@@ -197,7 +197,9 @@ def build_jfbc(
         cfg["discriminator"], buffers, obs_dim, act_dim, logger=logger, progress=progress
     )
     kappa = float(cfg["kappa"])
-    buffers.annotate("unlabeled", _fit_support(discriminators["safe"], buffers, "safe", kappa, "safe_support"))
+    buffers.annotate(
+        "unlabeled", _fit_support(discriminators["safe"], buffers, "safe", kappa, "safe_support")
+    )
     buffers.annotate(
         "unlabeled",
         _fit_support(discriminators["performant"], buffers, "performant", kappa, "performant_support"),

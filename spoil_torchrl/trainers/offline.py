@@ -20,6 +20,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torch import nn
 from torchrl.objectives import LossModule
 from torchrl.trainers import OptimizationStepper, Trainer
 
@@ -72,13 +73,23 @@ class OfflineBatchSource:
 class SampleBuffers:
     """``process_optim_batch`` hook: replaces the placeholder chunk by a fresh replay-buffer sample per step.
 
-    ``sample`` is e.g. :meth:`spoil_torchrl.data.DualDemoBuffers.sample` (one batch per role).
+    ``sample`` is e.g. :meth:`spoil_torchrl.data.DualDemoBuffers.sample` (one batch per role). The Trainer runs
+    ``optim_steps_per_batch`` steps per chunk; after as many samples as the chunk stands for (fewer for a short
+    last chunk) the hook raises ``StopIteration``, which ends the chunk's optimisation loop, so exactly
+    ``total_steps`` steps run.
     """
 
     def __init__(self, sample: Callable[[], TensorDictBase]) -> None:
         self.sample = sample
+        self._chunk: TensorDictBase | None = None
+        self._done = 0
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
+        if batch is not self._chunk:
+            self._chunk, self._done = batch, 0
+        if self._done >= batch.batch_size[0]:
+            raise StopIteration
+        self._done += 1
         return self.sample()
 
 
@@ -165,19 +176,24 @@ def offline_trainer(
         >>> from spoil_torchrl.objectives import WeightedBCLoss
         >>> loss = WeightedBCLoss(make_actor(3, 2, hidden_cells=(8,)), role="performant")
         >>> stepper = MultiLossStepper({"bc": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)])
-        >>> data = lambda: TensorDict({"performant": TensorDict({"observation": torch.randn(16, 3),
-        ...                                                      "action": torch.rand(16, 2) * 2 - 1}, [16])}, [])
-        >>> trainer = offline_trainer(stepper, data, total_steps=20, steps_per_batch=10, progress_bar=False)
+        >>> drawn = []
+        >>> def data():
+        ...     drawn.append(1)
+        ...     return TensorDict({"performant": TensorDict({"observation": torch.randn(16, 3),
+        ...                                                  "action": torch.rand(16, 2) * 2 - 1}, [16])}, [])
+        >>> trainer = offline_trainer(stepper, data, total_steps=25, steps_per_batch=10, progress_bar=False)
         >>> trainer.train()
-        >>> trainer.collected_frames
-        20
+        >>> trainer.collected_frames, len(drawn)  # one sample per optimisation step
+        (25, 25)
     """
     trainer = Trainer(
         collector=OfflineBatchSource(total_steps, steps_per_batch),
         total_frames=total_steps,
         frame_skip=1,
         optim_steps_per_batch=steps_per_batch,
-        loss_module=lambda td: td,
+        loss_module=nn.ModuleDict(
+            stepper.losses
+        ),  # for Trainer.state_dict(); the stepper computes the losses
         optimization_stepper=stepper,
         logger=logger,
         log_interval=log_interval,

@@ -42,8 +42,10 @@ def test_rollout_layout(policy):
     # PointCircle1 never terminates; it is truncated every 500 steps
     assert not arrays["terminals"].any()
     np.testing.assert_array_equal(np.flatnonzero(arrays["timeouts"]), [499, 999, 1499])
-    # within an episode the next observation is the following observation
+    # within an episode the next observation is the following observation; at a time limit it is the real
+    # next state, not the next episode's reset observation
     np.testing.assert_array_equal(arrays["next_observations"][:499], arrays["observations"][1:500])
+    assert not np.array_equal(arrays["next_observations"][499], arrays["observations"][500])
     assert set(np.unique(arrays["costs"])) <= {0.0, 1.0}
     assert np.abs(arrays["actions"]).max() <= 1.0
     # the unconstrained expert runs outside the circle's safe band: it must pay cost
@@ -110,6 +112,29 @@ def test_interrupted_collection_leaves_no_file(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_write_killed_midway_leaves_no_file(tmp_path, monkeypatch):
+    import h5py
+
+    real = h5py.Group.create_dataset
+    written = []
+
+    def failing(self, name, *args, **kwargs):
+        written.append(name)
+        if len(written) == 3:
+            raise KeyboardInterrupt  # killed after two arrays are on disk
+        return real(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", failing)
+    with pytest.raises(KeyboardInterrupt):
+        collect(ENV, [Segment("a", "random", 1)], tmp_path / "d.hdf5", reference_episodes=1, progress=False)
+    assert len(written) == 3 and list(tmp_path.iterdir()) == []
+
+
+def test_metadata_cannot_override_the_collectors_entries(tmp_path):
+    with pytest.raises(ValueError, match="segments"):
+        collect(ENV, [Segment("a", "random", 1)], tmp_path / "d.hdf5", metadata={"segments": []})
+
+
 def test_unknown_zoo_policy_names_the_available_ones():
     with pytest.raises(ValueError, match="available: .*safe-high"):
         collect_module.resolve_policy("zoo:nope", ENV)
@@ -133,7 +158,10 @@ def test_ensure_generated_makes_once_then_reuses(tmp_path, monkeypatch):
     monkeypatch.setattr(generated_module, "collect", counting)
     path = generated_module.ensure_generated("tiny", num_envs=1, progress=False)
     assert path == tmp_path / "tiny.hdf5" and read_metadata(path)["name"] == "tiny"
-    assert generated_module.ensure_generated("tiny", progress=False) == path and len(made) == 1
+    assert generated_module.ensure_generated("tiny", num_envs=1, progress=False) == path and len(made) == 1
     assert load_episodes("generated:tiny").shape[0] == 500
+    # a cached file from another recipe (here: another num_envs) is made again, not silently reused
+    generated_module.ensure_generated("tiny", num_envs=2, progress=False)
+    assert len(made) == 2 and read_metadata(path)["num_envs"] == 2
     with pytest.raises(KeyError, match="point-circle1-mixed"):
         generated_module.get_generated("nope")

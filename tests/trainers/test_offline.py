@@ -43,6 +43,9 @@ def test_stepper_updates_every_loss_and_chains_outputs():
     # the actor loss read the weights the dice loss wrote into the same batch
     assert "dice_weight" in batch["unlabeled"].keys()
     assert {"dice.loss_nu", "dice.loss_lambda", "actor.loss_actor"} <= set(out.keys())
+    assert float(out["actor.weight_mean"]) == pytest.approx(
+        float(batch["unlabeled", "dice_weight"].mean()), rel=1e-5
+    )
     assert all(v.ndim == 0 and not v.requires_grad for v in out.values())
 
 
@@ -69,10 +72,15 @@ def test_offline_trainer_runs_the_steps_and_the_hooks():
     def hook(batch):
         calls.append(trainer.collected_frames)
 
-    trainer = offline_trainer(stepper, sample, total_steps=30, steps_per_batch=10, progress_bar=False)
+    trainer = offline_trainer(stepper, sample, total_steps=25, steps_per_batch=10, progress_bar=False)
     trainer.register_op("post_steps_log", hook)
     trainer.train()
-    assert len(samples) == 30 and calls == [10, 20, 30]
+    # a short last chunk runs only its own steps: exactly total_steps samples and updates
+    assert len(samples) == 25 and calls == [10, 20, 25]
+    # the Trainer can checkpoint the losses it trains (its loss_module is a ModuleDict of them)
+    losses_state = trainer.state_dict()["loss_module"]
+    assert torch.equal(losses_state["dice.lagrange"], dice.lagrange.detach())
+    assert any(key.startswith("actor.") for key in losses_state)
     with pytest.raises(ValueError, match="at least one"):
         MultiLossStepper({}, [])
 
@@ -120,9 +128,18 @@ def test_filtered_bc_builders_weight_by_the_estimated_supports(tiny_pc1_dataset)
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     # safe: the safe-high episodes 0-2; performant: safe-high 2 and unsafe-high 6-7 (ids by policy type)
-    roles = {"safe": torch.tensor([0, 1, 2]), "performant": torch.tensor([2, 6, 7]), "unlabeled": torch.arange(12)}
+    roles = {
+        "safe": torch.tensor([0, 1, 2]),
+        "performant": torch.tensor([2, 6, 7]),
+        "unlabeled": torch.arange(12),
+    }
     buffers = DualDemoBuffers(episodes, roles, batch_size=64, seed=0)
-    disc = {"hidden_cells": [16], "lr": 1e-3, "steps": 5, "gradient_penalty": {"performant": 0.0, "safe": 0.0}}
+    disc = {
+        "hidden_cells": [16],
+        "lr": 1e-3,
+        "steps": 5,
+        "gradient_penalty": {"performant": 0.0, "safe": 0.0},
+    }
     common = {"distribution": "normal", "hidden_cells": [16], "kappa": 0.01, "actor_lr": 1e-3}
     fbc = ALGORITHMS["fbc"]({**common, "discriminator": disc}, buffers, 28, 2, progress=False)
     support = buffers["performant"].storage[:]["safe_support"]
