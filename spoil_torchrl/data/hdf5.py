@@ -104,7 +104,8 @@ def write_dsrl_file(
     """Write ``arrays`` (the DSRL keys) to ``path`` atomically: a killed writer leaves no file that loads.
 
     The data go to a unique ``<path>.<random>.tmp`` first and are renamed into place once complete.
-    ``metadata`` is stored as a JSON attribute. Examples are in the tests; the collection pipeline writes its datasets through here.
+    ``metadata`` is stored as a JSON attribute. Examples are in the tests; the collection pipeline
+    (:func:`spoil_torchrl.data.collect.collect`) writes its datasets through here.
     """
     path = Path(path)
     missing = [k for k in DSRL_KEYS if k not in arrays]
