@@ -105,7 +105,14 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
         raise ValueError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
 
     # Input: D_S, D_P, D_U (episode ids of one dataset) and the initial states D_0.
-    data = prepare_dataset(cfg.dataset, env_id=task.env_id, seed=int(cfg.seed), progress=cfg.progress)
+    # (an algorithm that needs another role, e.g. SafeDICE's non-preferred D_N, lists it in algo.extra_roles)
+    data = prepare_dataset(
+        cfg.dataset,
+        env_id=task.env_id,
+        seed=int(cfg.seed),
+        progress=cfg.progress,
+        extra_roles=tuple(cfg.algo.get("extra_roles", ())),
+    )
     obs_dim, act_dim = data.episodes["observation"].shape[-1], data.episodes["action"].shape[-1]
     if (obs_dim, act_dim) != (task.observation_dim, task.action_dim):
         raise ValueError(

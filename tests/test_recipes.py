@@ -104,6 +104,16 @@ def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
     assert not (tmp_path / "logs").exists()
 
 
+def test_dsrl_recipe_safedice_gets_its_nonpreferred_role(tmp_path, tiny_pc1_dataset):
+    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=safedice", "logger=none")
+    assert results["algo"] == "safedice" and results["status"] == "finished"
+    assert (
+        results["data"]["nonpreferred"]["safe_share"] == 0.0
+        and results["data"]["nonpreferred"]["episodes"] > 0
+    )
+    assert 0.0 <= results["diagnostics"]["alpha"] < 1.0
+
+
 def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dataset):
     cmd = [
         sys.executable,

@@ -3,7 +3,7 @@ and the return normalisation (paper F.1 for IL-SP labelling, F.2 for controlled 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -18,6 +18,7 @@ from spoil_torchrl.data.load import load_episodes, parse_source
 from spoil_torchrl.tasks import ENV_TASKS, get_dsrl_dataset
 
 SCHEMES = ("ilsp", "controlled")
+EXTRA_ROLES = ("nonpreferred",)
 
 
 @dataclass
@@ -71,8 +72,9 @@ def select_roles(
     cost_threshold: float,
     metadata: Mapping,
     seed: int,
+    extra_roles: Sequence[str] = (),
 ) -> dict[str, torch.Tensor]:
-    """D_S, D_P, D_U as episode ids, by ``cfg["scheme"]``:
+    """D_S, D_P, D_U (and the ``extra_roles`` an algorithm asks for) as episode ids, by ``cfg["scheme"]``:
 
     * ``"ilsp"`` (F.1): label every episode (safe iff cost <= threshold; performant iff return >= the
       ``return_quantile`` quantile of the safe returns), then draw ``n_safe`` safe and ``n_performant``
@@ -80,10 +82,50 @@ def select_roles(
       independent: an episode that is both safe and performant may be in both (F.1's labels overlap).
     * ``"controlled"`` (F.2): :func:`~spoil_torchrl.data.controlled_mix` of the file's policy-type pools with
       ``performance`` (share of safe-high in D_S) and ``safeness`` (share of safe-high in D_P).
+
+    ``extra_roles`` may hold ``"nonpreferred"`` (D_N, for SafeDICE): the *unsafe* episodes of D_U (episode
+    cost above ``cost_threshold``, F.1's non-preferred label), all of them (the paper, section 5.2.1: "we use
+    the entire set of unsafe demonstrations as non-preferred") or ``cfg["n_nonpreferred"]`` drawn ones
+    (seeded) when set, in either scheme. Taking them from D_U keeps SafeDICE's assumption that D_U mixes D_N
+    with the preferred data. Other algorithms do not ask for it, so their buffers never sample it.
     """
     scheme = cfg["scheme"]
     if scheme not in SCHEMES:
         raise ValueError(f"unknown labelling scheme {scheme!r}; choose one of {SCHEMES}")
+    unknown = [role for role in extra_roles if role not in EXTRA_ROLES]
+    if unknown:
+        raise ValueError(f"unknown extra roles {unknown}; available: {EXTRA_ROLES}")
+    roles = _base_roles(episodes, cfg, cost_threshold=cost_threshold, metadata=metadata, seed=seed)
+    if "nonpreferred" in extra_roles:
+        roles["nonpreferred"] = _nonpreferred(episodes, roles["unlabeled"], cfg, cost_threshold, seed)
+    return roles
+
+
+def _nonpreferred(
+    episodes: TensorDict, unlabeled: torch.Tensor, cfg: Mapping, cost_threshold: float, seed: int
+) -> torch.Tensor:
+    """The unsafe episodes of D_U (all, or ``cfg["n_nonpreferred"]`` drawn), see :func:`select_roles`."""
+    cost = episode_stats(episodes)["cost"]
+    unsafe = unlabeled[cost[unlabeled] > cost_threshold]
+    if unsafe.numel() == 0:
+        raise DatasetError(
+            f"D_U has no unsafe episode (cost above {cost_threshold}): SafeDICE has no non-preferred data"
+        )
+    k = cfg.get("n_nonpreferred")
+    if k is None:
+        return torch.sort(unsafe).values
+    if unsafe.numel() < int(k):
+        raise DatasetError(
+            f"D_U has {unsafe.numel()} unsafe episodes, fewer than n_nonpreferred={k}; lower n_nonpreferred"
+        )
+    return draw(unsafe, int(k), seed=seed + 3)
+
+
+def _base_roles(
+    episodes: TensorDict, cfg: Mapping, *, cost_threshold: float, metadata: Mapping, seed: int
+) -> dict[str, torch.Tensor]:
+    """D_S, D_P, D_U of ``cfg["scheme"]`` (see :func:`select_roles`)."""
+    scheme = cfg["scheme"]
     n_unlabeled = cfg.get("n_unlabeled")
     if scheme == "controlled":
         return controlled_mix(
@@ -113,11 +155,17 @@ def select_roles(
 
 
 def prepare_dataset(
-    cfg: Mapping, *, env_id: str | None = None, seed: int = 0, progress: bool = True
+    cfg: Mapping,
+    *,
+    env_id: str | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    extra_roles: Sequence[str] = (),
 ) -> PreparedDataset:
     """Load ``cfg["source"]`` (making a named generated dataset first when ``cfg["generate"]`` and it is not
     cached), work out the cost threshold and return range (``cfg`` overrides, else the file's metadata or the
-    DSRL table), check that it belongs to ``env_id``, and select the roles (:func:`select_roles`)."""
+    DSRL table), check that it belongs to ``env_id``, and select the roles (:func:`select_roles`, with the
+    ``extra_roles`` the algorithm needs, e.g. ``("nonpreferred",)`` for SafeDICE)."""
     source = cfg["source"]
     scheme, rest = parse_source(source)
     if scheme == "generated" and cfg.get("generate", True):
@@ -137,7 +185,9 @@ def prepare_dataset(
         raise DatasetError(f"{source}: no cost threshold known; set dataset.cost_threshold")
     if return_range is None:
         raise DatasetError(f"{source}: no return range known; set dataset.return_range=[R_min,R_max]")
-    roles = select_roles(episodes, cfg, cost_threshold=float(threshold), metadata=metadata, seed=seed)
+    roles = select_roles(
+        episodes, cfg, cost_threshold=float(threshold), metadata=metadata, seed=seed, extra_roles=extra_roles
+    )
     return PreparedDataset(
         episodes,
         roles,

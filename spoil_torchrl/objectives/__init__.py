@@ -1,6 +1,7 @@
 """TorchRL loss modules of SpoilDICE, one concept per file."""
 
 from spoil_torchrl.objectives.annotate import annotate
+from spoil_torchrl.objectives.demodice import DemoDICELoss, demodice_dual, demodice_log_weight
 from spoil_torchrl.objectives.discriminator import (
     LogRatio,
     PUDiscriminatorLoss,
@@ -8,9 +9,16 @@ from spoil_torchrl.objectives.discriminator import (
     nnpu_risks,
     pu_log_ratio,
 )
+from spoil_torchrl.objectives.functional import bellman_backup, dice_advantage
+from spoil_torchrl.objectives.safedice import (
+    SafeDICELoss,
+    safedice_auto_alpha,
+    safedice_dual,
+    safedice_log_weight,
+    safedice_reward,
+)
 from spoil_torchrl.objectives.spoildice import (
     SpoilDICELoss,
-    bellman_backup,
     closed_form_log_weight,
     spoildice_advantage,
     spoildice_dual,
@@ -19,18 +27,27 @@ from spoil_torchrl.objectives.support import SupportEstimator, quantile_threshol
 from spoil_torchrl.objectives.weighted_bc import WeightedBCLoss, weighted_nll
 
 __all__ = [
+    "DemoDICELoss",
     "LogRatio",
     "PUDiscriminatorLoss",
+    "SafeDICELoss",
     "SpoilDICELoss",
     "SupportEstimator",
     "WeightedBCLoss",
     "annotate",
     "bellman_backup",
     "closed_form_log_weight",
+    "demodice_dual",
+    "demodice_log_weight",
+    "dice_advantage",
     "logistic_ratio_losses",
     "nnpu_risks",
     "pu_log_ratio",
     "quantile_threshold",
+    "safedice_auto_alpha",
+    "safedice_dual",
+    "safedice_log_weight",
+    "safedice_reward",
     "spoildice_advantage",
     "spoildice_dual",
     "support_indicator",

@@ -1,13 +1,14 @@
-"""Pure tensor functions shared by the losses: gradient penalties, log-sum-exp weights, reductions.
+"""Pure tensor functions shared by the losses: gradient penalties, log-sum-exp weights, reductions, and the
+pieces every DICE dual has in common (Bellman backup, advantage, the nu gradient penalty).
 
-Each function does one thing and holds no parameters, so every loss (SpoilDICE now, the DICE baselines
-later) uses the same numerically careful version.
+Each function does one thing and holds no parameters, so every loss (SpoilDICE and the DICE baselines
+DemoDICE and SafeDICE) uses the same numerically careful version.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import torch
 
@@ -113,3 +114,80 @@ def gradient_penalty(norms: torch.Tensor, target: float | None) -> torch.Tensor:
     if target is None:
         return norms.pow(2).mean()
     return (norms - target).pow(2).mean()
+
+
+def effective_sample_size(weights: torch.Tensor) -> torch.Tensor:
+    """Kish's effective sample size of non-negative ``weights``, as a fraction of their number (1 = uniform).
+
+    Examples:
+        >>> effective_sample_size(torch.tensor([1.0, 1.0, 1.0, 1.0]))
+        tensor(1.)
+        >>> effective_sample_size(torch.tensor([4.0, 0.0, 0.0, 0.0]))
+        tensor(0.2500)
+    """
+    weights = weights.reshape(-1)
+    return weights.sum().pow(2) / weights.pow(2).sum() / weights.numel()
+
+
+def bellman_backup(next_nu: torch.Tensor, terminated: torch.Tensor, gamma: float) -> torch.Tensor:
+    """One-sample estimate of :math:`\\gamma (T\\nu)(s, a) = \\gamma\\, \\nu(s') (1 - \\text{terminated})`.
+
+    Only termination stops bootstrapping: a step cut by a time limit (truncated) keeps its real next state.
+
+    Examples:
+        >>> bellman_backup(torch.tensor([2.0, 2.0]), torch.tensor([0.0, 1.0]), gamma=0.5).tolist()
+        [1.0, 0.0]
+    """
+    return gamma * next_nu * (1.0 - terminated.to(next_nu.dtype))
+
+
+def dice_advantage(reward: torch.Tensor, nu: torch.Tensor, backup: torch.Tensor) -> torch.Tensor:
+    """:math:`A_\\nu(s,a) = r(s,a) + \\gamma (T\\nu)(s,a) - \\nu(s)`, the advantage of a KL-regularised DICE dual.
+
+    DemoDICE (Kim et al., 2022) uses it with :math:`r = \\log d_P / d_R` (:math:`d_R` the distribution the KL
+    regulariser points to), SafeDICE (Jang et al., 2023) with :func:`~spoil_torchrl.objectives.safedice_reward`;
+    SpoilDICE's Eq. (7) adds :math:`\\lambda \\mathbb 1_S` (:func:`~spoil_torchrl.objectives.spoildice_advantage`).
+
+    Examples:
+        >>> dice_advantage(torch.tensor([1.0]), torch.tensor([0.5]), torch.tensor([0.25])).item()
+        0.75
+    """
+    return reward + backup - nu
+
+
+# Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
+@torch.compiler.disable
+def nu_gradient_penalty(
+    nu_fn: Callable[[dict], torch.Tensor],
+    init: Mapping[object, torch.Tensor],
+    current: Mapping[object, torch.Tensor],
+    following: Mapping[object, torch.Tensor],
+) -> torch.Tensor:
+    """:math:`E[\\lVert \\nabla_s \\nu(\\tilde s) \\rVert^2]` on the current states, on points between initial and
+    current states and on points between :math:`s` and :math:`s'` (DemoDICE's reference form, with the
+    regularisation data in place of its expert data, which a DICE dual over one role does not have).
+
+    ``init``, ``current`` and ``following`` map each input key of the network to a flat ``[n, *event]`` tensor
+    (``current`` and ``following`` row-aligned); ``nu_fn`` maps such a dict to ``[n]`` values. The graph is kept,
+    so the penalty trains the network's parameters.
+
+    Examples:
+        >>> w = torch.tensor([3.0, 4.0], requires_grad=True)
+        >>> states = {"observation": torch.randn(5, 2)}
+        >>> nu_gradient_penalty(lambda s: s["observation"] @ w, states, states, states)
+        tensor(25., grad_fn=<MeanBackward0>)
+    """
+    keys = list(current)
+    n0 = min(init[keys[0]].shape[0], current[keys[0]].shape[0])
+    points = [
+        torch.cat(
+            [
+                current[k],
+                interpolate(init[k][:n0], current[k][:n0]),
+                interpolate(current[k], following[k]),
+            ]
+        )
+        for k in keys
+    ]
+    norms = input_gradient_norms(lambda *xs: nu_fn(dict(zip(keys, xs, strict=True))), points)
+    return gradient_penalty(norms, target=None)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey, unravel_key
 
@@ -43,3 +47,58 @@ def get_role(tensordict: TensorDictBase, role: NestedKey) -> TensorDictBase:
             "are samples"
         )
     return sub
+
+
+class DICETransitions(NamedTuple):
+    """A role's transitions and the initial states, flattened for a DICE dual (see :func:`dice_transitions`)."""
+
+    batch_shape: torch.Size  # the role's batch shape (weights are written back in it)
+    init: dict[NestedKey, torch.Tensor]  # network input key -> [n0, *event] initial states
+    current: dict[NestedKey, torch.Tensor]  # -> [n, *event] states s
+    following: dict[NestedKey, torch.Tensor]  # -> [n, *event] next states s'
+    terminated: torch.Tensor  # [n]
+
+
+def dice_transitions(
+    tensordict: TensorDictBase,
+    *,
+    role: NestedKey,
+    init: NestedKey,
+    state_keys: Sequence[NestedKey],
+    next_key: NestedKey,
+    terminated_key: NestedKey,
+    loss_name: str,
+) -> DICETransitions:
+    """Read the transitions of ``tensordict[role]`` and the states of ``tensordict[init]`` for a nu network.
+
+    The TED ``terminated`` entry is ``[*B, 1]``: it fixes the role's batch shape, and with it each state's
+    event shape (initial states live in the same space, whatever batch shape their role was given). Raises a
+    clear error for a flat ``terminated`` or an empty role.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> role = TensorDict({"observation": torch.zeros(4, 3), "next": TensorDict({
+        ...     "observation": torch.ones(4, 3), "terminated": torch.zeros(4, 1, dtype=torch.bool)}, [4])}, [4])
+        >>> batch = TensorDict({"unlabeled": role, "init": TensorDict({"observation": torch.zeros(2, 3)}, [2])}, [])
+        >>> t = dice_transitions(batch, role="unlabeled", init="init", state_keys=["observation"],
+        ...                      next_key="next", terminated_key=("next", "terminated"), loss_name="a loss")
+        >>> t.batch_shape, t.current["observation"].shape, t.init["observation"].shape, t.terminated.shape
+        (torch.Size([4]), torch.Size([4, 3]), torch.Size([2, 3]), torch.Size([4]))
+    """
+    data = get_role(tensordict, role)
+    terminated = data.get(terminated_key)
+    if terminated.ndim < 2 or terminated.shape[-1] != 1:
+        raise ValueError(
+            f"{role_key(role, terminated_key)} must have a trailing dimension of 1 (TED layout), "
+            f"got shape {tuple(terminated.shape)}"
+        )
+    batch_shape = terminated.shape[:-1]
+    n = batch_shape.numel()
+    events = {k: data.get(k).shape[len(batch_shape) :] for k in state_keys}
+    init_role = get_role(tensordict, init)
+    init_states = {k: init_role.get(k).reshape(-1, *events[k]) for k in state_keys}
+    current = {k: data.get(k).reshape(n, *events[k]) for k in state_keys}
+    following = {k: data.get(role_key(next_key, k)).reshape(n, *events[k]) for k in state_keys}
+    if n == 0 or init_states[state_keys[0]].shape[0] == 0:
+        raise ValueError(f"{loss_name} needs at least one transition in {role!r} and one initial state")
+    return DICETransitions(batch_shape, init_states, current, following, terminated.reshape(n))

@@ -12,26 +12,14 @@ from torch import nn
 from torchrl.objectives import LossModule
 
 from spoil_torchrl.objectives.functional import (
+    bellman_backup,
     check_reduction,
-    gradient_penalty,
-    input_gradient_norms,
-    interpolate,
+    effective_sample_size,
     log_mean_exp,
+    nu_gradient_penalty,
     self_normalized_weights,
 )
-from spoil_torchrl.objectives.keys import get_role, role_key
-
-
-def bellman_backup(next_nu: torch.Tensor, terminated: torch.Tensor, gamma: float) -> torch.Tensor:
-    """One-sample estimate of :math:`\\gamma (T\\nu)(s, a) = \\gamma\\, \\nu(s') (1 - \\text{terminated})`.
-
-    Only termination stops bootstrapping: a step cut by a time limit (truncated) keeps its real next state.
-
-    Examples:
-        >>> bellman_backup(torch.tensor([2.0, 2.0]), torch.tensor([0.0, 1.0]), gamma=0.5).tolist()
-        [1.0, 0.0]
-    """
-    return gamma * next_nu * (1.0 - terminated.to(next_nu.dtype))
+from spoil_torchrl.objectives.keys import dice_transitions, get_role, role_key
 
 
 def spoildice_advantage(
@@ -228,54 +216,30 @@ class SpoilDICELoss(LossModule):
             out = self.nu_network(TensorDict(states, [n]))
         return out.get(self.nu_network.out_keys[0]).reshape(n)
 
-    # Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
-    @torch.compiler.disable
     def _penalty(self, init: dict, current: dict, following: dict) -> torch.Tensor:
         if self.gradient_penalty == 0:
             return torch.zeros((), device=next(iter(current.values())).device)
-        keys = list(current)
-        n0 = min(init[keys[0]].shape[0], current[keys[0]].shape[0])
-        points = [
-            torch.cat(
-                [
-                    current[k],
-                    interpolate(init[k][:n0], current[k][:n0]),
-                    interpolate(current[k], following[k]),
-                ]
-            )
-            for k in keys
-        ]
-        norms = input_gradient_norms(lambda *xs: self._nu(dict(zip(keys, xs, strict=True))), points)
-        return self.gradient_penalty * gradient_penalty(norms, target=None)
+        return self.gradient_penalty * nu_gradient_penalty(self._nu, init, current, following)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Compute ``loss_nu`` and ``loss_lambda`` and write the weights into ``tensordict[unlabeled]``."""
         keys = self.tensor_keys
         unlabeled = get_role(tensordict, keys.unlabeled)
-        # The TED "terminated" entry is [*B, 1]: it fixes the batch shape, and with it each state's event shape
-        # (initial states live in the same space, whatever batch shape their role was given).
-        terminated = unlabeled.get(keys.terminated)
-        if terminated.ndim < 2 or terminated.shape[-1] != 1:
-            raise ValueError(
-                f"{role_key(keys.unlabeled, keys.terminated)} must have a trailing dimension of 1 (TED layout), "
-                f"got shape {tuple(terminated.shape)}"
-            )
-        batch_shape = terminated.shape[:-1]
-        n = batch_shape.numel()
         state_keys = self.nu_network.in_keys
-        events = {k: unlabeled.get(k).shape[len(batch_shape) :] for k in state_keys}
-        init_role = get_role(tensordict, keys.init)
-        init = {k: init_role.get(k).reshape(-1, *events[k]) for k in state_keys}
-        current = {k: unlabeled.get(k).reshape(n, *events[k]) for k in state_keys}
-        following = {k: unlabeled.get(role_key(keys.next, k)).reshape(n, *events[k]) for k in state_keys}
-        n0 = init[state_keys[0]].shape[0]
-        if n0 == 0 or n == 0:
-            raise ValueError("SpoilDICELoss needs at least one unlabeled transition and one initial state")
+        batch_shape, init, current, following, terminated = dice_transitions(
+            tensordict,
+            role=keys.unlabeled,
+            init=keys.init,
+            state_keys=state_keys,
+            next_key=keys.next,
+            terminated_key=keys.terminated,
+            loss_name=type(self).__name__,
+        )
+        n, n0 = batch_shape.numel(), init[state_keys[0]].shape[0]
 
         nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
         init_nu, nu, next_nu = nu_all.split([n0, n, n])
-        terminated = terminated.reshape(n)
         log_ratio = unlabeled.get(keys.log_ratio).reshape(n).to(nu.dtype)
         support = unlabeled.get(keys.support).reshape(n).to(nu.dtype)
         if not torch.compiler.is_compiling() and not bool(((support == 0) | (support == 1)).all()):
@@ -303,7 +267,7 @@ class SpoilDICELoss(LossModule):
                     "lagrange": lagrange.detach().clone(),
                     "log_weight_mean": log_mean_exp(log_w),
                     "weight_max": weights.max(),
-                    "effective_sample_size": weights.sum().pow(2) / weights.pow(2).sum() / n,
+                    "effective_sample_size": effective_sample_size(weights),
                     "support_fraction": support.mean(),
                     "support_weight": (weights * support).mean(),
                     "nu_init": init_nu.mean(),

@@ -1,8 +1,10 @@
-"""The neural SpoilDICE pipeline (Algorithm 1) run on a tabular problem with one-hot features.
+"""The neural SpoilDICE pipeline (Algorithm 1), and the neural DemoDICE baseline, run on a tabular problem with
+one-hot features.
 
 Everything here uses the library's real pieces -- TorchRL replay buffers, :class:`PUDiscriminatorLoss`,
-:class:`SupportEstimator`, :class:`SpoilDICELoss`, :class:`WeightedBCLoss` -- so that the learned policy's
-occupancy can be compared with the exact solution of :func:`~spoil_torchrl.tabular.solve_spoildice`.
+:class:`SupportEstimator`, :class:`SpoilDICELoss`, :class:`DemoDICELoss`, :class:`WeightedBCLoss` -- so that the
+learned policy's occupancy can be compared with the exact solutions of
+:func:`~spoil_torchrl.tabular.solve_spoildice` and :func:`~spoil_torchrl.tabular.solve_demodice`.
 """
 
 from __future__ import annotations
@@ -13,11 +15,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from tqdm.auto import tqdm
 
 from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
 from spoil_torchrl.objectives import (
+    DemoDICELoss,
     LogRatio,
     PUDiscriminatorLoss,
     SpoilDICELoss,
@@ -201,3 +205,118 @@ def train_tabular_spoildice(
         log_ratio = ratio_p(pairs.clone())["log_ratio_performant"].reshape(n_s, n_a).double().numpy()
     policy = policy / policy.sum(axis=1, keepdims=True)
     return TabularTrainingResult(occupancy(mdp, policy), policy, estimated_support, log_ratio, history)
+
+
+def exact_log_ratio_module(numerator: np.ndarray, denominator: np.ndarray, out_key: str) -> TensorDictModule:
+    """A module writing the exact :math:`\\log(d_1(s,a)/d_2(s,a))` of two ``[S, A]`` tables at ``out_key``, for
+    transitions with the integer ``state`` / ``action_index`` of :func:`sample_transitions` (in place of a
+    learned discriminator's :class:`LogRatio`).
+
+    Examples:
+        >>> module = exact_log_ratio_module(np.array([[0.5, 0.5]]), np.array([[0.25, 0.75]]), "r")
+        >>> td = TensorDict({"state": torch.tensor([0, 0]), "action_index": torch.tensor([0, 1])}, [2])
+        >>> [round(x, 4) for x in module(td)["r"].squeeze(-1).tolist()]
+        [0.6931, -0.4055]
+    """
+    with np.errstate(divide="ignore"):
+        table = torch.as_tensor(np.log(numerator) - np.log(denominator), dtype=torch.float32)
+
+    def lookup(state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return table[state, action].unsqueeze(-1)
+
+    return TensorDictModule(lookup, in_keys=["state", "action_index"], out_keys=[out_key])
+
+
+#: The reward key DemoDICE reads in each regularisation role (the recipe's names).
+DEMODICE_REWARD_KEYS = {"safe": "log_ratio_performant_safe", "unlabeled": "log_ratio_performant"}
+
+
+def train_tabular_demodice(
+    problem: DualDemoProblem,
+    alpha: float,
+    *,
+    regularization: str = "safe",
+    config: TabularTrainingConfig | None = None,
+    progress: bool = False,
+    log: Callable[[dict, int], None] | None = None,
+) -> TabularTrainingResult:
+    """Train :class:`DemoDICELoss` + :class:`WeightedBCLoss` on samples of ``problem`` and return the learned
+    policy's exact occupancy, to compare with ``solve_demodice(mdp, d_P, d_R, alpha)``.
+
+    ``regularization="safe"`` is DemoDICE-S (samples of :math:`d_R = d_S`), ``"unlabeled"`` DemoDICE-U
+    (:math:`d_R = d_U`). The reward :math:`\\log d_P/d_R` is annotated *exactly* from the tables
+    (:func:`exact_log_ratio_module`): this checks the DICE dual and the policy extraction, not a discriminator
+    (the discriminators are checked by :func:`train_tabular_spoildice`). Uses ``config``'s sample sizes,
+    ``dice_steps``, ``nu_lr``, ``actor_lr``, ``nu_gradient_penalty`` and ``seed``.
+
+    Returns:
+        :class:`TabularTrainingResult` with ``support`` = :math:`supp(d_R)` and ``log_ratio_performant`` the exact
+        :math:`\\log d_P/d_R` table.
+
+    Examples:
+        >>> from spoil_torchrl.tabular.problems import random_dual_demo_problem
+        >>> cfg = TabularTrainingConfig(n_samples=2_000, n_init=100, dice_steps=5)
+        >>> result = train_tabular_demodice(random_dual_demo_problem(seed=0), 0.1, config=cfg)
+        >>> result.occupancy.shape, round(float(result.occupancy.sum()), 6)
+        ((6, 3), 1.0)
+    """
+    if regularization not in DEMODICE_REWARD_KEYS:
+        raise ValueError(
+            f"regularization must be one of {tuple(DEMODICE_REWARD_KEYS)}, got {regularization!r}"
+        )
+    cfg = config or TabularTrainingConfig()
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    mdp = problem.mdp
+    n_s, n_a = mdp.n_states, mdp.n_actions
+    d_R = {"safe": problem.d_S, "unlabeled": problem.d_U}[regularization]
+    reward_key = DEMODICE_REWARD_KEYS[regularization]
+    history: list[dict] = []
+
+    buffers = {
+        regularization: _buffer(sample_transitions(mdp, d_R, cfg.n_samples, rng), cfg.batch_size),
+        "init": _buffer(sample_initial_states(mdp, cfg.n_init, rng), cfg.batch_size),
+    }
+    ratio = exact_log_ratio_module(problem.d_P, d_R, reward_key)
+    annotate(buffers[regularization], ratio)
+
+    dice = DemoDICELoss(
+        make_value_network(n_s, hidden_cells=()),
+        alpha=alpha,
+        gamma=mdp.gamma,
+        gradient_penalty=cfg.nu_gradient_penalty,
+        regularization=regularization,
+        reward=reward_key,
+    )
+    actor = make_actor(n_s, n_a, hidden_cells=(), distribution="categorical")
+    policy_loss = WeightedBCLoss(actor, role=regularization, weight="dice_weight")
+    optims = (
+        torch.optim.Adam(dice.parameters(), lr=cfg.nu_lr),
+        torch.optim.Adam(policy_loss.parameters(), lr=cfg.actor_lr),
+    )
+    schedules = [torch.optim.lr_scheduler.CosineAnnealingLR(o, max(cfg.dice_steps, 1)) for o in optims]
+    for step in tqdm(range(cfg.dice_steps), desc="demodice", disable=not progress):
+        batch = _sample(buffers)
+        dice_out = dice(batch)
+        actor_out = policy_loss(batch)
+        for optim in optims:
+            optim.zero_grad(set_to_none=True)
+        (dice_out["loss_nu"] + actor_out["loss_actor"]).backward()
+        for optim, schedule in zip(optims, schedules, strict=True):
+            optim.step()
+            schedule.step()
+        if step % 100 == 0:
+            metrics = {f"demodice/{k}": float(v.detach()) for k, v in dice_out.items()}
+            metrics |= {f"actor/{k}": float(v.detach()) for k, v in actor_out.items()}
+            history.append({"step": step, **metrics})
+            if log is not None:
+                log(metrics, step)
+
+    with torch.no_grad():
+        states = TensorDict({"observation": one_hot(np.arange(n_s), n_s)}, [n_s])
+        with policy_loss.actor_network_params.to_module(policy_loss.actor_network):
+            policy = policy_loss.actor_network.get_dist(states).probs.double().numpy()
+    policy = policy / policy.sum(axis=1, keepdims=True)
+    with np.errstate(divide="ignore"):
+        log_ratio = np.log(problem.d_P) - np.log(d_R)
+    return TabularTrainingResult(occupancy(mdp, policy), policy, d_R > 0, log_ratio, history)

@@ -5,7 +5,9 @@ An algorithm builder takes the algorithm's settings (a mapping, e.g. the Hydra `
 before the policy is trained (SpoilDICE: stage 1 of Algorithm 1 -- the discriminators C_P and C_S, the support
 cut, and the one-time annotation of the unlabeled storage), and returns :class:`PolicyTraining`: the losses
 and optimisers of the main stage and the loss that owns the policy. ``ALGORITHMS`` maps the ``algo.name`` of
-the recipe to its builder; adding a baseline means adding a builder here and a config in ``configs/algo/``.
+the recipe to its builder; adding a baseline means adding a builder here and a config in ``configs/algo/``
+(a baseline that needs a role other than D_S, D_P, D_U lists it in the config's ``extra_roles``, as SafeDICE
+does with its non-preferred D_N).
 """
 
 from __future__ import annotations
@@ -21,7 +23,16 @@ from torchrl.objectives import LossModule
 
 from spoil_torchrl.data.buffers import DualDemoBuffers
 from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
-from spoil_torchrl.objectives import PUDiscriminatorLoss, SpoilDICELoss, SupportEstimator, WeightedBCLoss
+from spoil_torchrl.objectives import (
+    DemoDICELoss,
+    PUDiscriminatorLoss,
+    SafeDICELoss,
+    SpoilDICELoss,
+    SupportEstimator,
+    WeightedBCLoss,
+    safedice_auto_alpha,
+    safedice_reward,
+)
 from spoil_torchrl.trainers.offline import MultiLossStepper, offline_trainer
 
 
@@ -64,13 +75,15 @@ def train_discriminators(
     act_dim: int,
     *,
     positives: tuple[str, ...] = ("performant", "safe"),
+    against: str = "unlabeled",
     logger=None,
     progress: bool = True,
 ) -> dict[str, PUDiscriminatorLoss]:
     """Algorithm 1, "pretrain C_P and C_S": one :class:`PUDiscriminatorLoss` per positive role against
-    ``"unlabeled"`` (Eq. 16-17), trained for ``cfg["steps"]`` steps with Adam (``cfg["lr"]``) through the
-    offline :class:`~torchrl.trainers.Trainer`. ``cfg["gradient_penalty"]`` maps each role to its penalty
-    coefficient (Table J: 10 for C_P, none for C_S)."""
+    ``against`` (default ``"unlabeled"``: Eq. 16-17; DemoDICE-S uses ``"safe"``), trained for ``cfg["steps"]``
+    steps with Adam (``cfg["lr"]``) through the offline :class:`~torchrl.trainers.Trainer`.
+    ``cfg["gradient_penalty"]`` maps each positive role to its penalty coefficient (Table J: 10 for C_P, none
+    for C_S)."""
     penalties = cfg["gradient_penalty"]
     missing = [role for role in positives if role not in penalties]
     if missing:
@@ -79,6 +92,7 @@ def train_discriminators(
         f"disc_{role}": PUDiscriminatorLoss(
             make_discriminator(obs_dim, act_dim, hidden_cells=tuple(cfg["hidden_cells"])),
             positive=role,
+            unlabeled=against,
             gradient_penalty=float(penalties[role]),
         )
         for role in positives
@@ -216,9 +230,153 @@ def build_jfbc(
     return PolicyTraining(stepper, policy_loss, diagnostics)
 
 
+def _build_demodice(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    regularization: str,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """DemoDICE regularised toward ``regularization``'s data d_R: one discriminator of D_P against that role
+    (its logit is log d_P/d_R, Eq. 18 with d_R in place of d_U), annotated once on the role's storage as the
+    reward; main stage: nu by DemoDICE's dual and pi by weighted BC on the role (see :class:`DemoDICELoss`)."""
+    reward_key = (
+        "log_ratio_performant" if regularization == "unlabeled" else f"log_ratio_performant_{regularization}"
+    )
+    discriminators = train_discriminators(
+        cfg["discriminator"],
+        buffers,
+        obs_dim,
+        act_dim,
+        positives=("performant",),
+        against=regularization,
+        logger=logger,
+        progress=progress,
+    )
+    buffers.annotate(regularization, discriminators["performant"].log_ratio_module(reward_key))
+    reward = buffers[regularization].storage[:][reward_key].float()
+    diagnostics = {f"{reward_key}_mean": float(reward.mean()), f"{reward_key}_std": float(reward.std())}
+    dice = DemoDICELoss(
+        make_value_network(obs_dim, hidden_cells=tuple(cfg["hidden_cells"])),
+        alpha=float(cfg["alpha"]),
+        gamma=float(cfg["gamma"]),
+        gradient_penalty=float(cfg["nu_gradient_penalty"]),
+        regularization=regularization,
+        reward=reward_key,
+    )
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=regularization, weight="dice_weight")
+    optimizers = [
+        _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
+        _adam(policy_loss.parameters(), cfg["actor_lr"]),
+    ]
+    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
+def build_demodice_s(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """DemoDICE-S (paper section 5): min KL(d||d_P) + alpha KL(d||d_S) with D_S as the samples. C_P is trained
+    against D_S, so its logit is the reward log d_P/d_S; D_S is annotated with ``log_ratio_performant_safe``
+    and the policy is weighted BC on D_S."""
+    return _build_demodice(
+        cfg, buffers, obs_dim, act_dim, regularization="safe", logger=logger, progress=progress
+    )
+
+
+def build_demodice_u(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """DemoDICE-U (paper section 5; the original DemoDICE with D_U as its union data): min KL(d||d_P) +
+    alpha KL(d||d_U); C_P against D_U (Eq. 16) gives the reward log r_P on D_U (``log_ratio_performant``) and
+    the policy is weighted BC on D_U."""
+    return _build_demodice(
+        cfg, buffers, obs_dim, act_dim, regularization="unlabeled", logger=logger, progress=progress
+    )
+
+
+def build_safedice(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+) -> PolicyTraining:
+    """SafeDICE (Jang et al., 2023; paper section 5 with the unsafe episodes as non-preferred D_N). Stage 1: the
+    discriminator of D_N against D_U (Eq. 16 with D_N as positives), frozen; D_U annotated once with its logit
+    ``log_ratio_nonpreferred``; alpha = ``cfg["alpha"]``, or :func:`safedice_auto_alpha` of D over all of D_U for
+    ``"auto"``; with ``cfg["standardize_reward"]`` the reward is standardised by its mean and standard deviation
+    over D_U, as the reference code does. Main stage: nu by SafeDICE's dual and pi by weighted BC on D_U."""
+    if "nonpreferred" not in buffers.roles:
+        raise ValueError(
+            "SafeDICE needs a 'nonpreferred' role (D_N) in the buffers: list it in algo.extra_roles "
+            "(configs/algo/safedice.yaml does) so that prepare_dataset selects it"
+        )
+    discriminators = train_discriminators(
+        cfg["discriminator"],
+        buffers,
+        obs_dim,
+        act_dim,
+        positives=("nonpreferred",),
+        logger=logger,
+        progress=progress,
+    )
+    buffers.annotate("unlabeled", discriminators["nonpreferred"].log_ratio_module("log_ratio_nonpreferred"))
+    probability = torch.sigmoid(
+        buffers["unlabeled"].storage[:]["log_ratio_nonpreferred"].double().reshape(-1)
+    )
+    alpha = safedice_auto_alpha(probability) if str(cfg["alpha"]) == "auto" else float(cfg["alpha"])
+    reward = safedice_reward(probability, alpha)
+    reward_mean, reward_std = 0.0, 1.0
+    if bool(cfg.get("standardize_reward", False)):
+        std = float(reward.std(unbiased=False))  # NumPy's std, as the reference
+        reward_mean, reward_std = float(reward.mean()), (std if std > 0 else 1.0)
+    diagnostics = {
+        "alpha": alpha,
+        "reward_mean": float(reward.mean()),
+        "reward_std": float(reward.std(unbiased=False)),
+        "nonpreferred_probability_mean": float(probability.mean()),
+    }
+    dice = SafeDICELoss(
+        make_value_network(obs_dim, hidden_cells=tuple(cfg["hidden_cells"])),
+        alpha=alpha,
+        gamma=float(cfg["gamma"]),
+        gradient_penalty=float(cfg["nu_gradient_penalty"]),
+        reward_mean=reward_mean,
+        reward_std=reward_std,
+    )
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="dice_weight")
+    optimizers = [
+        _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
+        _adam(policy_loss.parameters(), cfg["actor_lr"]),
+    ]
+    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
 ALGORITHMS: dict[str, Callable[..., PolicyTraining]] = {
     "spoildice": build_spoildice,
     "bc": build_bc,
     "fbc": build_fbc,
     "jfbc": build_jfbc,
+    "demodice_s": build_demodice_s,
+    "demodice_u": build_demodice_u,
+    "safedice": build_safedice,
 }

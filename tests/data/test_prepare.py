@@ -49,6 +49,36 @@ def test_controlled_roles_use_the_policy_pools(tiny_pc1_dataset):
     assert data.roles["unlabeled"].numel() == 8
 
 
+def test_nonpreferred_role_only_when_asked(tiny_pc1_dataset):
+    source = f"file:{tiny_pc1_dataset}"
+    plain = prepare_dataset({"source": source, **ILSP}, env_id="SafetyPointCircle1-v0")
+    assert set(plain.roles) == {"safe", "performant", "unlabeled"}
+    data = prepare_dataset({"source": source, **ILSP}, extra_roles=("nonpreferred",))
+    cost = episode_stats(data.episodes)["cost"]
+    unsafe = (cost > data.cost_threshold).nonzero().squeeze(-1)
+    assert data.roles["nonpreferred"].tolist() == unsafe.tolist() and unsafe.numel() > 0  # all unsafe of D_U
+    assert all(torch.equal(data.roles[r], plain.roles[r]) for r in plain.roles)  # the other draws unchanged
+    assert data.summary()["nonpreferred"]["safe_share"] == 0.0
+    drawn = prepare_dataset({"source": source, **ILSP, "n_nonpreferred": 2}, extra_roles=("nonpreferred",))
+    assert drawn.roles["nonpreferred"].numel() == 2 and set(drawn.roles["nonpreferred"].tolist()) <= set(
+        unsafe.tolist()
+    )
+    # the controlled scheme: the unsafe episodes of its D_U
+    controlled = {"scheme": "controlled", "n_safe": 2, "n_performant": 2, "performance": 0.5, "safeness": 0.5}
+    mix = prepare_dataset({"source": source, **controlled, "n_unlabeled": 8}, extra_roles=("nonpreferred",))
+    assert set(mix.roles["nonpreferred"].tolist()) <= set(mix.roles["unlabeled"].tolist())
+    assert bool((cost[mix.roles["nonpreferred"]] > mix.cost_threshold).all())
+    with pytest.raises(DatasetError, match="fewer than n_nonpreferred"):
+        prepare_dataset({"source": source, **ILSP, "n_nonpreferred": 100}, extra_roles=("nonpreferred",))
+    with pytest.raises(DatasetError, match="no unsafe episode"):
+        prepare_dataset(
+            {"source": source, **ILSP, "cost_threshold": 1e9, "return_range": [0, 1]},
+            extra_roles=("nonpreferred",),
+        )
+    with pytest.raises(ValueError, match="unknown extra roles"):
+        prepare_dataset({"source": source, **ILSP}, extra_roles=("expert",))
+
+
 def test_bad_inputs_give_clear_errors(tiny_pc1_dataset):
     source = f"file:{tiny_pc1_dataset}"
     with pytest.raises(DatasetError, match="recorded in SafetyPointCircle1-v0"):

@@ -151,3 +151,95 @@ def test_filtered_bc_builders_weight_by_the_estimated_supports(tiny_pc1_dataset)
     assert torch.equal(unlabeled["jfbc_weight"], unlabeled["safe_support"] * unlabeled["performant_support"])
     out = jfbc.stepper.step(None, buffers.sample())
     assert torch.isfinite(out["actor.loss_actor"])
+
+
+def _dice_baseline_cfg(penalties: dict) -> dict:
+    return {
+        "distribution": "normal",
+        "hidden_cells": [16],
+        "gamma": 0.99,
+        "alpha": 0.1,
+        "nu_gradient_penalty": 10.0,
+        "nu_lr": 1e-3,
+        "actor_lr": 1e-3,
+        "discriminator": {"hidden_cells": [16], "gradient_penalty": penalties, "lr": 1e-3, "steps": 5},
+    }
+
+
+def test_builders_train_demodice_s_and_u(tiny_pc1_dataset):
+    from spoil_torchrl.data import DualDemoBuffers, load_episodes
+    from spoil_torchrl.trainers.algorithms import ALGORITHMS, train_discriminators
+
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
+    buffers = DualDemoBuffers(episodes, roles, batch_size=64, seed=0)
+    cfg = _dice_baseline_cfg({"performant": 10.0})
+
+    demo_s = ALGORITHMS["demodice_s"](cfg, buffers, 28, 2, progress=False)
+    assert "log_ratio_performant_safe" in buffers["safe"].storage[:].keys()
+    assert "log_ratio_performant_safe" not in buffers["unlabeled"].storage[:].keys()
+    dice = demo_s.stepper.losses["dice"]
+    assert (
+        dice.tensor_keys.regularization == "safe" and dice.tensor_keys.reward == "log_ratio_performant_safe"
+    )
+    assert dice.alpha == pytest.approx(0.1)
+    assert demo_s.policy_loss.tensor_keys.role == "safe"
+    assert set(demo_s.diagnostics) == {"log_ratio_performant_safe_mean", "log_ratio_performant_safe_std"}
+    batch = buffers.sample()
+    out = demo_s.stepper.step(None, batch)
+    assert torch.isfinite(out["dice.loss_nu"]) and torch.isfinite(out["actor.loss_actor"])
+    assert float(out["actor.weight_mean"]) == pytest.approx(1.0, rel=1e-5)
+    assert "dice_weight" in batch["safe"].keys()
+
+    # DemoDICE-S's discriminator is trained against D_S (not D_U): its logit is log d_P / d_S
+    discs = train_discriminators(
+        cfg["discriminator"] | {"steps": 1},
+        buffers,
+        28,
+        2,
+        positives=("performant",),
+        against="safe",
+        progress=False,
+    )
+    assert discs["performant"].tensor_keys.unlabeled == "safe"
+
+    demo_u = ALGORITHMS["demodice_u"](cfg, buffers, 28, 2, progress=False)
+    assert "log_ratio_performant" in buffers["unlabeled"].storage[:].keys()
+    assert demo_u.stepper.losses["dice"].tensor_keys.regularization == "unlabeled"
+    assert demo_u.policy_loss.tensor_keys.role == "unlabeled"
+    out = demo_u.stepper.step(None, buffers.sample())
+    assert torch.isfinite(out["dice.loss_nu"]) and torch.isfinite(out["actor.loss_actor"])
+    with demo_u.policy() as policy:
+        td = policy(TensorDict({"observation": torch.zeros(3, 28)}, [3]))
+    assert td["action"].shape == (3, 2)
+
+
+def test_builder_trains_safedice_with_a_nonpreferred_role(tiny_pc1_dataset):
+    from spoil_torchrl.data import DualDemoBuffers, load_episodes
+    from spoil_torchrl.objectives import safedice_auto_alpha
+    from spoil_torchrl.trainers.algorithms import ALGORITHMS
+
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
+    cfg = _dice_baseline_cfg({"nonpreferred": 10.0}) | {"alpha": "auto", "standardize_reward": True}
+    with pytest.raises(ValueError, match="nonpreferred"):
+        ALGORITHMS["safedice"](cfg, DualDemoBuffers(episodes, roles, batch_size=64), 28, 2, progress=False)
+
+    # D_N: the unsafe-high and unsafe-medium episodes (ids 6-11 of the tiny file)
+    buffers = DualDemoBuffers(episodes, roles | {"nonpreferred": torch.arange(6, 12)}, batch_size=64, seed=0)
+    training = ALGORITHMS["safedice"](cfg, buffers, 28, 2, progress=False)
+    unlabeled = buffers["unlabeled"].storage[:]
+    probability = torch.sigmoid(unlabeled["log_ratio_nonpreferred"].double())
+    alpha = training.diagnostics["alpha"]
+    assert alpha == pytest.approx(safedice_auto_alpha(probability)) and 0.0 <= alpha < 1.0
+    dice = training.stepper.losses["dice"]
+    assert dice.alpha == alpha and dice.reward_std == pytest.approx(training.diagnostics["reward_std"])
+    assert dice.reward_mean == pytest.approx(training.diagnostics["reward_mean"])
+    out = training.stepper.step(None, buffers.sample())
+    assert torch.isfinite(out["dice.loss_nu"]) and torch.isfinite(out["actor.loss_actor"])
+    assert float(out["dice.clipped_fraction"]) == 0.0  # the auto alpha fits every unlabeled sample
+    # a fixed alpha and no standardisation
+    fixed = ALGORITHMS["safedice"](
+        cfg | {"alpha": 0.2, "standardize_reward": False}, buffers, 28, 2, progress=False
+    )
+    assert fixed.stepper.losses["dice"].alpha == 0.2 and fixed.stepper.losses["dice"].reward_std == 1.0

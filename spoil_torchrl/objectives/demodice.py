@@ -1,0 +1,263 @@
+"""The DemoDICE dual over nu (Kim et al., 2022): the baselines DemoDICE-S / DemoDICE-U of section 5."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule, dispatch
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.objectives.functional import (
+    bellman_backup,
+    check_reduction,
+    dice_advantage,
+    effective_sample_size,
+    log_mean_exp,
+    nu_gradient_penalty,
+    self_normalized_weights,
+)
+from spoil_torchrl.objectives.keys import dice_transitions, get_role, role_key
+
+
+def demodice_dual(init_nu: torch.Tensor, advantage: torch.Tensor, alpha: float, gamma: float) -> torch.Tensor:
+    """DemoDICE's :math:`\\nu` objective (Kim et al., 2022, the log-sum-exp form of its reference code):
+    :math:`(1+\\alpha) \\log E_R[\\exp(A_\\nu / (1+\\alpha))] + (1-\\gamma) E_{\\rho_0}[\\nu(s_0)]`.
+
+    It is the dual of :math:`\\max_d E_d[r] - (1+\\alpha) D_{KL}(d \\| d_R)` over stationary distributions, with
+    :math:`d_R` the distribution of the samples (the regularisation role). (The reference uses ``logsumexp``
+    instead of the mean: a constant :math:`(1+\\alpha)\\log n` apart.)
+
+    Examples:
+        >>> demodice_dual(torch.zeros(3), torch.zeros(4), alpha=0.1, gamma=0.9).item()
+        0.0
+        >>> round(demodice_dual(torch.ones(3), torch.full((4,), 1.1), alpha=0.1, gamma=0.9).item(), 4)
+        1.2
+    """
+    temperature = 1.0 + alpha
+    return temperature * log_mean_exp(advantage / temperature) + (1.0 - gamma) * init_nu.mean()
+
+
+def demodice_log_weight(advantage: torch.Tensor, alpha: float) -> torch.Tensor:
+    """DemoDICE's closed-form correction :math:`\\log w^*(s,a) = A_\\nu(s,a) / (1+\\alpha) - 1` (:math:`w^* =
+    d^*/d_R`), kept in log space.
+
+    Examples:
+        >>> demodice_log_weight(torch.tensor([1.1]), alpha=0.1).exp().item()
+        1.0
+    """
+    return advantage / (1.0 + alpha) - 1.0
+
+
+class DemoDICELoss(LossModule):
+    r"""DemoDICE's dual objective over :math:`\nu` (Kim et al., 2022), regularised toward one role's data.
+
+    DemoDICE (`reference code <https://github.com/geon-hyeong/imitation-dice>`_) solves
+
+    .. math:: \min_d D_{KL}(d \| d_P) + \alpha D_{KL}(d \| d_R)
+              = \max_d E_d[\log (d_P/d_R)] - (1+\alpha) D_{KL}(d \| d_R)
+
+    over stationary distributions, with samples of :math:`d_R` (the ``regularization`` role). With the reward
+    :math:`r = \log(d_P/d_R)` (read from the ``reward`` key of the role) and
+    :math:`A_\nu = r + \gamma \nu(s')(1 - d) - \nu(s)` (:math:`d` the *terminated* flag), the dual is
+    :func:`demodice_dual` and the correction :math:`w^* = d^*/d_R \propto \exp(A_\nu/(1+\alpha))`.
+    The `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_ uses two variants
+    (section 5, Table J: :math:`\alpha = 0.1`, :math:`\nu` gradient penalty 10):
+
+    * **DemoDICE-U** (``regularization="unlabeled"``, the original DemoDICE with :math:`D_U` as its union
+      data): :math:`r = \log \hat r_P = \log d_P/d_U`, the logit of :math:`C_P` (Eq. 18), written by
+      :class:`~spoil_torchrl.objectives.LogRatio` at ``"log_ratio_performant"`` (the default ``reward``). The
+      reference's reward is :math:`-\log(1/(\sigma(c)+10^{-3}) - 1 + 10^{-3})`, the same logit up to a clip of
+      about :math:`[-6.9, 13.8]`; we use the logit itself.
+    * **DemoDICE-S** (``regularization="safe"``): the same objective with :math:`d_R = d_S`, so
+      :math:`r = \log d_P/d_S` on the safe transitions. The recipe obtains it, as the reference obtains its
+      reward, from one discriminator: :math:`C_{PS}` trained on Eq. (16) with :math:`D_S` in place of
+      :math:`D_U` (positive role ``performant``, negative role ``safe``), whose logit is :math:`\log d_P/d_S`;
+      it is written at ``"log_ratio_performant_safe"`` in the safe role. (Equivalently, since
+      :math:`d_P/d_S = (d_P/d_U)/(d_S/d_U)`, one may annotate :math:`\log \hat r_P - \log \hat r_S` and point
+      ``reward`` at it; that needs two discriminators and adds both their errors.)
+
+    With the reward and the samples matching, the optimum is exactly
+    :func:`~spoil_torchrl.tabular.solve_demodice` with :math:`d_R` as its second distribution:
+    ``solve_demodice(mdp, d_P, d_S, alpha)`` for DemoDICE-S, ``solve_demodice(mdp, d_P, d_U, alpha)`` for
+    DemoDICE-U (``tests/tabular/test_demodice_convergence.py``). The weights only live on the role's samples,
+    so DemoDICE-S's :math:`d^*` lives on :math:`supp(d_S)`, as the exact solution does.
+
+    * ``loss_nu`` is :func:`demodice_dual` plus a gradient penalty :math:`c\,E[\lVert \nabla_s \nu(\tilde s)
+      \rVert^2]` on the role's states, on states between initial and role states and between :math:`s` and
+      :math:`s'` (:func:`~spoil_torchrl.objectives.functional.nu_gradient_penalty`; the reference interpolates
+      with its expert states, which this one-role dual does not have, as in SpoilDICE).
+
+    The self-normalised weights :math:`\tilde w = w^*/\overline{w^*}` (batch mean 1, computed after subtracting
+    the batch max, so they never overflow) are written, detached, into the *input* tensordict at
+    ``(regularization, weight)``, where ``WeightedBCLoss(actor, role=regularization, weight="dice_weight")``
+    reads them (Eq. 20 on the role's data).
+
+    Args:
+        nu_network (TensorDictModule): :math:`\nu(s)`, reading its ``in_keys`` inside a role and writing a scalar.
+
+    Keyword Args:
+        alpha (float): weight :math:`\alpha \ge 0` of the :math:`D_{KL}(d \| d_R)` regulariser. Default 0.1
+            (Table J).
+        gamma (float): discount in (0, 1). Default 0.99 (Table J).
+        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables. Default 10.
+        regularization (NestedKey, optional): the role :math:`d_R` (its transitions are the samples, its
+            ``reward`` entry is :math:`\log d_P/d_R`). Default ``"unlabeled"`` (DemoDICE-U).
+        reward (NestedKey, optional): inside the role, :math:`\log d_P/d_R`. Default ``"log_ratio_performant"``.
+        reduction (str): only ``"mean"``: the log-sum-exp couples the samples of a batch, so the objective has no
+            per-sample form.
+
+    Output keys: ``loss_nu`` and detached diagnostics ``log_weight_mean`` (:math:`\log E_R[w^*]`; the dual
+    leaves :math:`\nu`'s constant offset free, so only its changes are informative), ``weight_max`` (largest
+    :math:`\tilde w`), ``effective_sample_size`` (Kish ESS of :math:`\tilde w` as a fraction of the batch),
+    ``reward_mean``, ``nu_init`` and ``advantage_mean``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.modules import make_value_network
+        >>> loss = DemoDICELoss(make_value_network(3, hidden_cells=(16,)), alpha=0.1, regularization="safe",
+        ...                     reward="log_ratio_performant_safe")
+        >>> n = 8
+        >>> safe = TensorDict({
+        ...     "observation": torch.randn(n, 3),
+        ...     "next": {"observation": torch.randn(n, 3), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
+        ...     "log_ratio_performant_safe": torch.randn(n, 1),
+        ... }, [n])
+        >>> batch = TensorDict({"safe": safe, "init": TensorDict({"observation": torch.randn(4, 3)}, [4])}, [])
+        >>> loss(batch)["loss_nu"].backward()
+        >>> batch["safe", "dice_weight"].shape, round(batch["safe", "dice_weight"].mean().item(), 4)
+        (torch.Size([8, 1]), 1.0)
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys.
+
+        Attributes:
+            regularization (NestedKey): sub-tensordict of the transitions of :math:`d_R`. Defaults to
+                ``"unlabeled"``.
+            init (NestedKey): sub-tensordict of initial states. Defaults to ``"init"``.
+            next (NestedKey): inside ``regularization``, where the next state's entries live. Defaults to
+                ``"next"``.
+            terminated (NestedKey): inside ``regularization``. Defaults to ``("next", "terminated")``.
+            reward (NestedKey): inside ``regularization``, :math:`\\log d_P/d_R`. Defaults to
+                ``"log_ratio_performant"``.
+            weight (NestedKey): inside ``regularization``, where the detached weights are written. Defaults to
+                ``"dice_weight"``.
+        """
+
+        regularization: NestedKey = "unlabeled"
+        init: NestedKey = "init"
+        next: NestedKey = "next"
+        terminated: NestedKey = ("next", "terminated")
+        reward: NestedKey = "log_ratio_performant"
+        weight: NestedKey = "dice_weight"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys = [
+        "loss_nu",
+        "log_weight_mean",
+        "weight_max",
+        "effective_sample_size",
+        "reward_mean",
+        "nu_init",
+        "advantage_mean",
+    ]
+
+    nu_network: TensorDictModule
+    nu_network_params: TensorDictParams
+    target_nu_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        nu_network: TensorDictModule,
+        *,
+        alpha: float = 0.1,
+        gamma: float = 0.99,
+        gradient_penalty: float = 10.0,
+        regularization: NestedKey | None = None,
+        reward: NestedKey | None = None,
+        reduction: str | None = None,
+    ) -> None:
+        super().__init__()
+        if not 0.0 < gamma < 1.0:
+            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
+        if not alpha >= 0.0:  # also rejects NaN
+            raise ValueError(f"alpha must be >= 0, got {alpha}")
+        if gradient_penalty < 0:
+            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
+        self.reduction = check_reduction(reduction, allowed=("mean",))
+        self.convert_to_functional(nu_network, "nu_network")
+        self.alpha = float(alpha)
+        self.gamma = float(gamma)
+        self.gradient_penalty = float(gradient_penalty)
+        keys = {"regularization": regularization, "reward": reward}
+        self.set_keys(**{name: key for name, key in keys.items() if key is not None})
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        state_keys = self.nu_network.in_keys
+        role = [role_key(keys.regularization, k) for k in state_keys]
+        nxt = [role_key(keys.regularization, role_key(keys.next, k)) for k in state_keys]
+        extra = [role_key(keys.regularization, k) for k in (keys.terminated, keys.reward)]
+        init = [role_key(keys.init, k) for k in state_keys]
+        return role + nxt + extra + init
+
+    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
+        n = next(iter(states.values())).shape[0]
+        with self.nu_network_params.to_module(self.nu_network):
+            out = self.nu_network(TensorDict(states, [n]))
+        return out.get(self.nu_network.out_keys[0]).reshape(n)
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Compute ``loss_nu`` and write the weights into ``tensordict[regularization]``."""
+        keys = self.tensor_keys
+        data = get_role(tensordict, keys.regularization)
+        state_keys = self.nu_network.in_keys
+        batch_shape, init, current, following, terminated = dice_transitions(
+            tensordict,
+            role=keys.regularization,
+            init=keys.init,
+            state_keys=state_keys,
+            next_key=keys.next,
+            terminated_key=keys.terminated,
+            loss_name=type(self).__name__,
+        )
+        n, n0 = batch_shape.numel(), init[state_keys[0]].shape[0]
+
+        nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
+        init_nu, nu, next_nu = nu_all.split([n0, n, n])
+        reward = data.get(keys.reward).reshape(n).detach().to(nu.dtype)  # data of a frozen discriminator
+        advantage = dice_advantage(reward, nu, bellman_backup(next_nu, terminated, self.gamma))
+        loss_nu = demodice_dual(init_nu, advantage, self.alpha, self.gamma)
+        if self.gradient_penalty > 0:
+            penalty = nu_gradient_penalty(self._nu, init, current, following)
+            loss_nu = loss_nu + self.gradient_penalty * penalty
+
+        with torch.no_grad():
+            log_w = demodice_log_weight(advantage, self.alpha)
+            weights = self_normalized_weights(log_w)
+            data.set(keys.weight, weights.reshape(*batch_shape, 1))
+            out = TensorDict(
+                {
+                    "loss_nu": loss_nu,
+                    "log_weight_mean": log_mean_exp(log_w),
+                    "weight_max": weights.max(),
+                    "effective_sample_size": effective_sample_size(weights),
+                    "reward_mean": reward.mean(),
+                    "nu_init": init_nu.mean(),
+                    "advantage_mean": advantage.mean(),
+                },
+                [],
+            )
+        self._clear_weakrefs(tensordict, out, "nu_network_params")
+        return out

@@ -1,0 +1,316 @@
+"""The SafeDICE dual over nu (Jang et al., 2023): imitation from unlabeled data and non-preferred (unsafe)
+demonstrations, the SafeDICE baseline of the paper's section 5."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule, dispatch
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.objectives.functional import (
+    bellman_backup,
+    check_reduction,
+    dice_advantage,
+    effective_sample_size,
+    log_mean_exp,
+    nu_gradient_penalty,
+    self_normalized_weights,
+)
+from spoil_torchrl.objectives.keys import dice_transitions, get_role, role_key
+
+#: Smallest argument of the reward's logarithm (the reference code's clip in its reward statistics).
+REWARD_LOG_FLOOR = 1e-10
+
+
+def safedice_reward(probability: torch.Tensor, alpha: float) -> torch.Tensor:
+    """SafeDICE's reward :math:`r = \\log \\frac{1 - (1+\\alpha) D}{(1-\\alpha)(1-D)} = \\log \\frac{d_P}{d_U}`.
+
+    :math:`D = d_N / (d_N + d_U)` is the probability of the non-preferred-vs-unlabeled discriminator (the
+    sigmoid of its logit, Eq. 18's :math:`C`), so :math:`d_N/d_U = D/(1-D)`, and the mixture assumption
+    :math:`d_U = \\alpha d_N + (1-\\alpha) d_P` gives :math:`d_P/d_U = (1 - \\alpha\\, d_N/d_U)/(1-\\alpha)`,
+    which is the expression above.
+
+    **Guard.** The mixture is only consistent where :math:`\\alpha d_N \\le d_U`, i.e. :math:`D \\le 1/(1+\\alpha)`;
+    beyond it (a fixed :math:`\\alpha` too large for some samples, or a discriminator more confident on new data
+    than on the data :func:`safedice_auto_alpha` saw) the log's argument is :math:`\\le 0` and the reference code
+    returns NaN. We clip :math:`D` to at most :math:`1/(1+\\alpha)` and the numerator to at least
+    ``REWARD_LOG_FLOOR`` (:math:`10^{-10}`, the reference's clip in its reward statistics): such samples get the
+    lowest reward, :math:`\\log 10^{-10} - \\log(1-\\alpha) - \\log(\\alpha/(1+\\alpha))`, i.e. :math:`d_P = 0`
+    up to the floor. Clipping :math:`D` (not only the numerator) keeps the reward non-increasing in :math:`D`:
+    with the numerator floored alone, :math:`D \\to 1` would send the denominator to 0 and the reward to
+    :math:`+\\infty`.
+
+    Args:
+        probability: :math:`D \\in [0, 1]`.
+        alpha: the share :math:`\\alpha \\in [0, 1)` of non-preferred data in :math:`d_U`; 0 gives :math:`r = 0`.
+
+    Examples:
+        >>> d_n, d_p, alpha = torch.tensor([0.2, 0.0]), torch.tensor([0.0, 0.5]), 0.5
+        >>> d_u = alpha * d_n + (1 - alpha) * d_p
+        >>> D = d_n / (d_n + d_u)
+        >>> [round(x, 6) for x in safedice_reward(D, alpha).exp().tolist()]  # d_P / d_U (0 up to the floor)
+        [0.0, 2.0]
+    """
+    if not 0.0 <= alpha < 1.0:
+        raise ValueError(f"alpha must lie in [0, 1), got {alpha}")
+    if alpha == 0.0:  # d_P = d_U; the formula's 0/0 at D = 1 must not leak out
+        return torch.zeros_like(probability)
+    d = probability.clamp(0.0, 1.0 / (1.0 + alpha))
+    numerator = (1.0 - (1.0 + alpha) * d).clamp_min(REWARD_LOG_FLOOR)
+    return torch.log(numerator) - torch.log1p(-d) - math.log1p(-alpha)
+
+
+def safedice_auto_alpha(probability: torch.Tensor, margin: float = 1e-5) -> float:
+    """SafeDICE's "auto" :math:`\\alpha`: the largest share of :math:`d_N` in :math:`d_U` the discriminator allows,
+    :math:`\\min(1, \\min_U (1-D)/D) - 10^{-5}`, floored at 0.
+
+    :math:`\\alpha d_N \\le d_U` must hold on every unlabeled sample, i.e. :math:`\\alpha \\le (1-D)/D`
+    (:func:`safedice_reward`). As in the reference code (``find_alpha``: the minimum starts at 1, then the
+    margin is subtracted) the cap 1 comes before the margin, so :math:`\\alpha < 1` and :math:`1-\\alpha > 0`.
+    The floor at 0 (not in the reference) keeps :math:`\\alpha` valid when some unlabeled sample has
+    :math:`D > 1/(1 + 10^{-5})`; then the reward is 0 and SafeDICE is BC on :math:`D_U`.
+
+    Args:
+        probability: :math:`D` on (all) the unlabeled data.
+        margin: subtracted after the minimum. Default :math:`10^{-5}` (reference).
+
+    Examples:
+        >>> round(safedice_auto_alpha(torch.tensor([0.1, 0.2, 0.6])), 6)  # (1 - 0.6) / 0.6 = 0.667
+        0.666657
+        >>> round(safedice_auto_alpha(torch.tensor([0.1, 0.2])), 6)  # capped at 1
+        0.99999
+    """
+    if probability.numel() == 0:
+        raise ValueError("safedice_auto_alpha needs at least one probability")
+    d = probability.detach().double().clamp(0.0, 1.0)
+    ratio = torch.where(d > 0, (1.0 - d) / d, torch.full_like(d, math.inf))
+    return max(0.0, min(1.0, float(ratio.min())) - margin)
+
+
+def safedice_dual(init_nu: torch.Tensor, advantage: torch.Tensor, gamma: float) -> torch.Tensor:
+    """SafeDICE's :math:`\\nu` objective (Jang et al., 2023, the log-sum-exp form of its reference code):
+    :math:`\\log E_U[\\exp A_\\nu] + (1-\\gamma) E_{\\rho_0}[\\nu(s_0)]`, the dual of
+    :math:`\\max_d E_d[r] - D_{KL}(d \\| d_U) = -D_{KL}(d \\| d_P)` (with :math:`r = \\log d_P/d_U`).
+
+    Examples:
+        >>> round(safedice_dual(torch.ones(3), torch.zeros(4), gamma=0.9).item(), 4)
+        0.1
+    """
+    return log_mean_exp(advantage) + (1.0 - gamma) * init_nu.mean()
+
+
+def safedice_log_weight(advantage: torch.Tensor) -> torch.Tensor:
+    """SafeDICE's closed-form correction :math:`\\log w^*(s,a) = A_\\nu(s,a) - 1` (:math:`w^* = d^*/d_U`).
+
+    Examples:
+        >>> safedice_log_weight(torch.tensor([1.0])).exp().item()
+        1.0
+    """
+    return advantage - 1.0
+
+
+class SafeDICELoss(LossModule):
+    r"""SafeDICE's dual objective over :math:`\nu` (Jang et al., 2023), with a frozen non-preferred discriminator.
+
+    SafeDICE (`reference code <https://github.com/jys5609/SafeDICE>`_) imitates the preferred part of the
+    unlabeled data, :math:`\min_d D_{KL}(d \| d_P)` over stationary distributions, where :math:`d_P` is known
+    only through :math:`d_U = \alpha d_N + (1-\alpha) d_P` and demonstrations :math:`D_N` of non-preferred
+    behaviour. The `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_ (section 5)
+    uses the unsafe demonstrations as :math:`D_N`. A discriminator :math:`D` of :math:`D_N` against
+    :math:`D_U` (e.g. :class:`~spoil_torchrl.objectives.PUDiscriminatorLoss` with ``positive="nonpreferred"``,
+    pre-trained and frozen) gives the reward :func:`safedice_reward` :math:`r = \log d_P/d_U`; with
+    :math:`A_\nu = r + \gamma \nu(s')(1 - d) - \nu(s)` (:math:`d` the *terminated* flag):
+
+    * ``loss_nu`` is :func:`safedice_dual` plus a gradient penalty :math:`c\,E[\lVert \nabla_s \nu(\tilde s)
+      \rVert^2]` (Table J: 10) on unlabeled states, on states between initial and unlabeled states and between
+      :math:`s` and :math:`s'` (:func:`~spoil_torchrl.objectives.functional.nu_gradient_penalty`; the reference
+      interpolates with the non-preferred states instead).
+
+    The loss reads the discriminator's *logit* (:math:`\log d_N/d_U`, what
+    :class:`~spoil_torchrl.objectives.LogRatio` writes) and takes :math:`D = \sigma(\text{logit})`. :math:`\alpha`
+    is fixed here; the reference's "auto" value is :func:`safedice_auto_alpha` of :math:`D` over all of
+    :math:`D_U`, which the recipe computes once after pre-training.
+
+    The reference code also standardises the reward, :math:`(r - \bar r)/s_r` with the mean and standard
+    deviation over :math:`D_U` computed once; ``reward_mean`` / ``reward_std`` do the same (defaults 0 and 1:
+    the plain reward). The shift changes nothing (:math:`\nu`'s offset absorbs it) but the scale acts as the
+    inverse weight of the KL term, so the standardised objective is :math:`\max_d E_d[r]/s_r - D_{KL}(d\|d_U)`.
+
+    The self-normalised weights :math:`\tilde w \propto \exp(A_\nu - 1)` (batch mean 1, computed after
+    subtracting the batch max: the reference exponentiates without it and overflows) are written, detached,
+    into the *input* tensordict at ``(unlabeled, weight)`` for
+    ``WeightedBCLoss(actor, role="unlabeled", weight="dice_weight")``.
+
+    Args:
+        nu_network (TensorDictModule): :math:`\nu(s)`, reading its ``in_keys`` inside a role and writing a scalar.
+
+    Keyword Args:
+        alpha (float): share of :math:`d_N` in :math:`d_U`, in [0, 1) (Table J: "auto", see above).
+        gamma (float): discount in (0, 1). Default 0.99 (Table J).
+        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables. Default 10.
+        reward_mean (float): subtracted from the reward. Default 0.
+        reward_std (float): the reward is divided by it (> 0). Default 1.
+        reduction (str): only ``"mean"``: the log-sum-exp couples the samples of a batch.
+
+    Output keys: ``loss_nu`` and detached diagnostics ``alpha``, ``reward_mean`` (of the batch, after
+    standardisation), ``clipped_fraction`` (share of the batch with :math:`D > 1/(1+\alpha)`, where
+    :func:`safedice_reward` clips), ``log_weight_mean``, ``weight_max``, ``effective_sample_size``, ``nu_init``
+    and ``advantage_mean``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.modules import make_value_network
+        >>> loss = SafeDICELoss(make_value_network(3, hidden_cells=(16,)), alpha=0.3)
+        >>> n = 8
+        >>> unlabeled = TensorDict({
+        ...     "observation": torch.randn(n, 3),
+        ...     "next": {"observation": torch.randn(n, 3), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
+        ...     "log_ratio_nonpreferred": torch.randn(n, 1),
+        ... }, [n])
+        >>> init = TensorDict({"observation": torch.randn(4, 3)}, [4])
+        >>> batch = TensorDict({"unlabeled": unlabeled, "init": init}, [])
+        >>> loss(batch)["loss_nu"].backward()
+        >>> round(batch["unlabeled", "dice_weight"].mean().item(), 4)
+        1.0
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys.
+
+        Attributes:
+            unlabeled (NestedKey): sub-tensordict of unlabeled transitions. Defaults to ``"unlabeled"``.
+            init (NestedKey): sub-tensordict of initial states. Defaults to ``"init"``.
+            next (NestedKey): inside ``unlabeled``, where the next state's entries live. Defaults to ``"next"``.
+            terminated (NestedKey): inside ``unlabeled``. Defaults to ``("next", "terminated")``.
+            logit (NestedKey): inside ``unlabeled``, the discriminator's logit :math:`\\log d_N/d_U`. Defaults
+                to ``"log_ratio_nonpreferred"``.
+            weight (NestedKey): inside ``unlabeled``, where the detached weights are written. Defaults to
+                ``"dice_weight"``.
+        """
+
+        unlabeled: NestedKey = "unlabeled"
+        init: NestedKey = "init"
+        next: NestedKey = "next"
+        terminated: NestedKey = ("next", "terminated")
+        logit: NestedKey = "log_ratio_nonpreferred"
+        weight: NestedKey = "dice_weight"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    out_keys = [
+        "loss_nu",
+        "alpha",
+        "reward_mean",
+        "clipped_fraction",
+        "log_weight_mean",
+        "weight_max",
+        "effective_sample_size",
+        "nu_init",
+        "advantage_mean",
+    ]
+
+    nu_network: TensorDictModule
+    nu_network_params: TensorDictParams
+    target_nu_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        nu_network: TensorDictModule,
+        *,
+        alpha: float,
+        gamma: float = 0.99,
+        gradient_penalty: float = 10.0,
+        reward_mean: float = 0.0,
+        reward_std: float = 1.0,
+        reduction: str | None = None,
+    ) -> None:
+        super().__init__()
+        if not 0.0 < gamma < 1.0:
+            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
+        if not 0.0 <= alpha < 1.0:
+            raise ValueError(f"alpha must lie in [0, 1), got {alpha}")
+        if gradient_penalty < 0:
+            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
+        if not (reward_std > 0 and math.isfinite(reward_std) and math.isfinite(reward_mean)):
+            raise ValueError(f"reward_std must be a positive number, got {reward_std} (mean {reward_mean})")
+        self.reduction = check_reduction(reduction, allowed=("mean",))
+        self.convert_to_functional(nu_network, "nu_network")
+        self.alpha = float(alpha)
+        self.gamma = float(gamma)
+        self.gradient_penalty = float(gradient_penalty)
+        self.reward_mean = float(reward_mean)
+        self.reward_std = float(reward_std)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        state_keys = self.nu_network.in_keys
+        unl = [role_key(keys.unlabeled, k) for k in state_keys]
+        nxt = [role_key(keys.unlabeled, role_key(keys.next, k)) for k in state_keys]
+        extra = [role_key(keys.unlabeled, k) for k in (keys.terminated, keys.logit)]
+        init = [role_key(keys.init, k) for k in state_keys]
+        return unl + nxt + extra + init
+
+    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
+        n = next(iter(states.values())).shape[0]
+        with self.nu_network_params.to_module(self.nu_network):
+            out = self.nu_network(TensorDict(states, [n]))
+        return out.get(self.nu_network.out_keys[0]).reshape(n)
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Compute ``loss_nu`` and write the weights into ``tensordict[unlabeled]``."""
+        keys = self.tensor_keys
+        unlabeled = get_role(tensordict, keys.unlabeled)
+        state_keys = self.nu_network.in_keys
+        batch_shape, init, current, following, terminated = dice_transitions(
+            tensordict,
+            role=keys.unlabeled,
+            init=keys.init,
+            state_keys=state_keys,
+            next_key=keys.next,
+            terminated_key=keys.terminated,
+            loss_name=type(self).__name__,
+        )
+        n, n0 = batch_shape.numel(), init[state_keys[0]].shape[0]
+
+        nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
+        init_nu, nu, next_nu = nu_all.split([n0, n, n])
+        probability = torch.sigmoid(unlabeled.get(keys.logit).reshape(n).detach().to(nu.dtype))
+        reward = (safedice_reward(probability, self.alpha) - self.reward_mean) / self.reward_std
+        advantage = dice_advantage(reward, nu, bellman_backup(next_nu, terminated, self.gamma))
+        loss_nu = safedice_dual(init_nu, advantage, self.gamma)
+        if self.gradient_penalty > 0:
+            penalty = nu_gradient_penalty(self._nu, init, current, following)
+            loss_nu = loss_nu + self.gradient_penalty * penalty
+
+        with torch.no_grad():
+            log_w = safedice_log_weight(advantage)
+            weights = self_normalized_weights(log_w)
+            unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
+            out = TensorDict(
+                {
+                    "loss_nu": loss_nu,
+                    "alpha": torch.tensor(self.alpha, dtype=nu.dtype, device=nu.device),
+                    "reward_mean": reward.mean(),
+                    "clipped_fraction": (probability > 1.0 / (1.0 + self.alpha)).to(nu.dtype).mean(),
+                    "log_weight_mean": log_mean_exp(log_w),
+                    "weight_max": weights.max(),
+                    "effective_sample_size": effective_sample_size(weights),
+                    "nu_init": init_nu.mean(),
+                    "advantage_mean": advantage.mean(),
+                },
+                [],
+            )
+        self._clear_weakrefs(tensordict, out, "nu_network_params")
+        return out
