@@ -46,6 +46,7 @@ def test_train_experts_recipe_tiny(tmp_path):
     cmd = [
         sys.executable,
         str(ROOT / "recipes" / "train_experts.py"),
+        "env_id=SafetyPointCircle1-v0",  # the key must not clash with the main recipe's task/ config group
         "ppo.total_frames=500",
         "ppo.frames_per_batch=500",
         "ppo.minibatch_size=250",
