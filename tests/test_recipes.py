@@ -154,3 +154,37 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
     assert "| spoildice | 2 | **0.60 ± 0.10** | **0.70 ± 0.20** |" in table  # safe on average: bold
     assert "| bc | 1 | 0.30 | 4.00 |" in table  # one seed: no standard error, not safe
     assert (tmp_path / "t.png").stat().st_size > 1000
+
+
+def test_collect_demos_recipe_reuses_a_cached_dataset(tmp_path, monkeypatch):
+    import importlib.util
+
+    import pytest
+
+    if importlib.util.find_spec("safety_gymnasium") is None:
+        pytest.skip("safety-gymnasium not installed")
+    from spoil_torchrl.data import Segment, collect
+    from spoil_torchrl.data.generated import get_generated
+
+    # a cached file with the right fingerprint is reused: no rollout, just the Table-I-style summary
+    spec = get_generated("point-circle1-controlled")
+    collect(
+        spec.env_id,
+        [Segment("safe-high", "zoo:safe-high", 1)],
+        tmp_path / "point-circle1-controlled.hdf5",
+        num_envs=1,
+        reference_episodes=1,
+        progress=False,
+        metadata={"fingerprint": spec.fingerprint(8), "name": spec.name},
+    )
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "collect_demos.py"),
+        "name=point-circle1-controlled",
+        "progress=false",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
+    env = {**__import__("os").environ, "SPOIL_TORCHRL_DATA_DIR": str(tmp_path)}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| safe-high | 1 |" in proc.stdout
