@@ -1,7 +1,7 @@
 """Make a named demonstration dataset from the committed expert policies (paper appendix F.2).
 
     python recipes/collect_demos.py                                     # the main recipe's embedded default
-    python recipes/collect_demos.py dataset=point-circle1-controlled    # the four typed pools, 500 each
+    python recipes/collect_demos.py name=point-circle1-controlled    # the four typed pools, 500 each
 
 The file lands in ``$SPOIL_TORCHRL_DATA_DIR`` (default ``~/.cache/spoil_torchrl/generated``) as
 ``<dataset>.hdf5`` and loads with ``load_episodes("generated:<dataset>")``. A cached file is reused unless
@@ -23,13 +23,13 @@ from spoil_torchrl.eval import policy_table
 @hydra.main(config_path="../configs", config_name="collect_demos", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     torch.set_num_threads(cfg.threads)
-    spec = get_generated(cfg.dataset)
+    spec = get_generated(cfg.name)
     start = time.perf_counter()
-    path = ensure_generated(cfg.dataset, force=cfg.force, num_envs=cfg.num_envs, progress=cfg.progress)
+    path = ensure_generated(cfg.name, force=cfg.force, num_envs=cfg.num_envs, progress=cfg.progress)
     meta = read_metadata(path)
-    episodes = load_episodes(f"generated:{cfg.dataset}")
+    episodes = load_episodes(f"generated:{cfg.name}")
     print(
-        f"{cfg.dataset}: {spec.episodes} episodes of {spec.env_id}, {meta['steps']} steps, in {path}\n"
+        f"{cfg.name}: {spec.episodes} episodes of {spec.env_id}, {meta['steps']} steps, in {path}\n"
         f"(made in {meta['seconds']:.0f} s = {meta['steps'] / meta['seconds']:.0f} steps/s; this call "
         f"{time.perf_counter() - start:.0f} s); random-policy return {meta['random_return']}, "
         f"safe-high return {meta['safe_high_return']}\n"

@@ -3,9 +3,10 @@
 For each seed (one random zone layout): solve d*_M and d*_Mc by linear programming, build d_P (safeness xi)
 and d_S (performance o) at each quality level, solve every Table B objective exactly for each hyper-parameter,
 evaluate the extracted policies exactly, and keep per method the highest-return feasible policy, else the
-lowest-cost one (appendix E.2). Writes ``results.json``, ``results.md`` and two PNGs into the Hydra run dir.
+lowest-cost one (appendix E.2). Writes ``results.json``, ``results.md`` and three PNGs (the first seed's layout
+with the optimal routes, Figure 3b's trade-off, Figure A's quality curves) into the Hydra run dir.
 
-    python recipes/tabular_gridworld.py seeds=5 grid.cost_model=transition
+    python recipes/tabular_gridworld.py seeds=5 grid.layout=along grid.cost_model=transition
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ from pathlib import Path
 import hydra
 import matplotlib
 import numpy as np
+import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
+from spoil_torchrl.eval.tables import mean_stderr
 from spoil_torchrl.tabular import (
     InfeasibleProblemError,
     evaluate,
@@ -31,17 +34,15 @@ from spoil_torchrl.tabular import (
     solve_spoildice_lagrangian,
 )
 from spoil_torchrl.tabular.gridworld import (
+    Demonstrators,
+    Gridworld,
     make_demonstrators,
     make_gridworld,
     performant_distribution,
+    route_lengths,
     safe_distribution,
 )
-from spoil_torchrl.tabular.protocol import (
-    mean_and_standard_error,
-    normalised_cost,
-    normalised_return,
-    select_candidate,
-)
+from spoil_torchrl.tabular.protocol import is_feasible, normalise, select_candidate
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the Agg backend)
@@ -116,25 +117,33 @@ def solve_all(cfg: DictConfig, mdp, d_P: np.ndarray, d_S: np.ndarray) -> dict[st
     return out
 
 
+def mean_se(values) -> tuple[float, float]:
+    """Mean and standard error over seeds (:func:`~spoil_torchrl.eval.tables.mean_stderr`: nan for one seed)."""
+    return mean_stderr(torch.tensor([float(v) for v in values], dtype=torch.float64))
+
+
+def make_grid(cfg: DictConfig, seed: int) -> Gridworld:
+    return make_gridworld(seed, **OmegaConf.to_container(cfg.grid))
+
+
 def run_seed(cfg: DictConfig, seed: int) -> dict:
-    grid = make_gridworld(seed, **OmegaConf.to_container(cfg.grid))
+    grid = make_grid(cfg, seed)
     mdp, limit = grid.mdp, grid.cost_limit
     demo = make_demonstrators(grid)
-
-    def normalise(ret: float, cost: float) -> dict:
-        return {
-            "normalised_return": normalised_return(ret, demo.random_return, demo.optimal_return),
-            "normalised_cost": normalised_cost(cost, limit),
-        }
+    scale = {"random_return": demo.random_return, "optimal_return": demo.optimal_return, "cost_limit": limit}
 
     def j(d):
         return float((d * mdp.reward).sum()), float((d * mdp.cost).sum())
 
+    shortest, safe = route_lengths(grid)
     result = {
         "seed": seed,
+        "start": list(grid.start),
+        "goal": list(grid.goal),
         "zone_centers": list(grid.zone_centers),
+        "route_lengths": {"shortest": shortest, "shortest_cost_free": safe},
         "references": {
-            name: {"return": r, "cost": c, **normalise(r, c)}
+            name: {"return": r, "cost": c, **normalise(r, c, **scale)}
             for name, (r, c) in {
                 "d*_M (unconstrained optimum)": j(demo.d_mdp),
                 "d*_Mc (CMDP optimum)": j(demo.d_cmdp),
@@ -156,7 +165,7 @@ def run_seed(cfg: DictConfig, seed: int) -> dict:
                     selected[method] = None
                     continue
                 chosen = select_candidate(usable, limit)
-                selected[method] = {**chosen, **normalise(chosen["return"], chosen["cost"])}
+                selected[method] = {**chosen, **normalise(chosen["return"], chosen["cost"], **scale)}
             solved[(xi, o)] = {"selected": selected, "candidates": candidates}
         result["problems"].append({"sweep": sweep, "level": level, "xi": xi, "o": o, **solved[(xi, o)]})
     return result
@@ -179,8 +188,8 @@ def summarise(cfg: DictConfig, results: list[dict]) -> dict:
                 continue
             row[method] = {
                 "n": len(picked),
-                "return": mean_and_standard_error([p["normalised_return"] for p in picked]),
-                "cost": mean_and_standard_error([p["normalised_cost"] for p in picked]),
+                "return": mean_se([p["normalised_return"] for p in picked]),
+                "cost": mean_se([p["normalised_cost"] for p in picked]),
                 "feasible": float(np.mean([p["feasible"] for p in picked])),
             }
         summary.setdefault(sweep, {})[level] = row
@@ -201,33 +210,74 @@ def solvability(results: list[dict], method: str) -> dict[str, float]:
     return {t: float(np.mean(v)) for t, v in counts.items()}
 
 
-def reference_summary(results: list[dict]) -> dict:
+def reference_summary(results: list[dict], limit: float) -> dict:
     names = list(results[0]["references"])
     out = {}
     for name in names:
         rows = [r["references"][name] for r in results]
         out[name] = {
-            "return": mean_and_standard_error([x["normalised_return"] for x in rows]),
-            "cost": mean_and_standard_error([x["normalised_cost"] for x in rows]),
-            "feasible": float(np.mean([x["normalised_cost"] <= 1.0 + 1e-6 for x in rows])),
+            "return": mean_se([x["normalised_return"] for x in rows]),
+            "cost": mean_se([x["normalised_cost"] for x in rows]),
+            "feasible": float(np.mean([is_feasible(x["cost"], limit) for x in rows])),
             "max_cost": float(max(x["normalised_cost"] for x in rows)),
         }
     return out
 
 
+def pm(mean_and_se: tuple[float, float], digits: int) -> str:
+    """``"mean ± se"``; the mean alone where the standard error is undefined (a single seed: nan).
+
+    Examples:
+        >>> pm((1.0, 0.25), 2), pm((1.0, float("nan")), 2)
+        ('1.00 ± 0.25', '1.00')
+    """
+    mean, se = mean_and_se
+    return f"{mean:.{digits}f} ± {se:.{digits}f}" if np.isfinite(se) else f"{mean:.{digits}f}"
+
+
 def _cell(entry: dict) -> str:
     if entry["n"] == 0:
         return "no solution"
-    (r, r_se), (c, c_se) = entry["return"], entry["cost"]
-    return f"{r:.3f} ± {r_se:.3f} / {c:.2f} ± {c_se:.2f} ({100 * entry['feasible']:.0f}%)"
+    return f"{pm(entry['return'], 3)} / {pm(entry['cost'], 2)} ({100 * entry['feasible']:.0f}%)"
 
 
-def markdown(cfg: DictConfig, summary: dict, references: dict, solvable: dict, n_seeds: int) -> str:
+def route_summary(results: list[dict]) -> str:
+    """One line on how much longer the cost-free routes are than the shortest ones, over the seeds."""
+    extra = [
+        r["route_lengths"]["shortest_cost_free"] - r["route_lengths"]["shortest"]
+        for r in results
+        if r["route_lengths"]["shortest_cost_free"] is not None
+    ]
+    shortest = sorted({r["route_lengths"]["shortest"] for r in results})
+    text = (
+        f"Shortest route: {'/'.join(map(str, shortest))} moves; the shortest cost-free route is longer by "
+        f"{min(extra)} .. {max(extra)} moves (mean {np.mean(extra):.1f}); it is as short in "
+        f"{sum(e == 0 for e in extra)} of {len(results)} seeds"
+    )
+    missing = len(results) - len(extra)
+    return text + (f"; {missing} seeds have no cost-free route." if missing else ".")
+
+
+def to_json(value):
+    """``value`` with nan (the standard error of a single seed) mapped to ``None`` (JSON ``null``)."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: to_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_json(v) for v in value]
+    return value
+
+
+def markdown(cfg: DictConfig, summary: dict, references: dict, solvable: dict, results: list[dict]) -> str:
     levels = [float(q) for q in cfg.levels]
+    n_seeds = len(results)
+    se = "mean ± standard error" if n_seeds > 1 else "the value (no standard error for one seed)"
     lines = [
         f"Normalised return (0 = uniform random, 1 = CMDP optimum) / normalised cost (J(pi; c) / delta_c), "
-        f"mean ± standard error over {n_seeds} seeds, and the share of seeds whose selected policy is feasible "
-        f"(cost <= delta_c). Cost model: `{cfg.grid.cost_model}`; the fixed quality is {cfg.fixed_level:g}.",
+        f"{se} over {n_seeds} seeds, and the share of seeds whose selected policy is feasible "
+        f"(cost <= delta_c). Layout: `{cfg.grid.layout}`; cost model: `{cfg.grid.cost_model}`; the fixed "
+        f"quality is {cfg.fixed_level:g}. {route_summary(results)}",
         "",
     ]
     for sweep, title in SWEEPS.items():
@@ -245,9 +295,8 @@ def markdown(cfg: DictConfig, summary: dict, references: dict, solvable: dict, n
         "|---|---|---|---|---|",
     ]
     for name, ref in references.items():
-        (r, r_se), (c, c_se) = ref["return"], ref["cost"]
         lines.append(
-            f"| {name} | {r:.3f} ± {r_se:.3f} | {c:.3f} ± {c_se:.3f} | {100 * ref['feasible']:.0f}% "
+            f"| {name} | {pm(ref['return'], 3)} | {pm(ref['cost'], 3)} | {100 * ref['feasible']:.0f}% "
             f"| {ref['max_cost']:.3f} |"
         )
     lines += [
@@ -268,6 +317,42 @@ STYLE = {
 
 def _style(method: str) -> tuple[str, str]:
     return STYLE.get(method, ("tab:green", "o"))
+
+
+def _likeliest_route(grid: Gridworld, d: np.ndarray) -> list[tuple[int, int]]:
+    """The cells the policy of occupancy ``d`` visits from the start when every move goes where it was meant."""
+    route, cell = [grid.start], grid.cell(*grid.start)
+    goal = grid.cell(*grid.goal)
+    while cell != goal and len(route) <= 4 * grid.size * grid.size:
+        action = int(np.argmax(d[cell]))
+        cell = int(np.argmax(grid.mdp.transition[cell, action]))
+        route.append(divmod(cell, grid.size))
+    return route
+
+
+def plot_layout(grid: Gridworld, demo: Demonstrators, seed: int, path: Path) -> None:
+    """Figure 3a: one seed's zones, start and goal, and the most likely routes of d*_M and d*_Mc."""
+    size = grid.size
+    fig, ax = plt.subplots(figsize=(5, 5))
+    zone_colors = matplotlib.colors.ListedColormap(["white", "tab:olive"])
+    ax.imshow(grid.zone[: size * size].reshape(size, size), cmap=zone_colors, vmin=0, vmax=1, alpha=0.8)
+    for name, d, color, offset in (
+        ("d*_M (unconstrained optimum)", demo.d_mdp, "tab:red", -0.12),
+        ("d*_Mc (CMDP optimum)", demo.d_cmdp, "tab:blue", 0.12),
+    ):
+        rows, cols = np.array(_likeliest_route(grid, d)).T
+        ax.plot(cols + offset, rows + offset, color=color, linewidth=2.2, marker=".", label=name)
+    for (r, c), color, label in ((grid.start, "tab:orange", "start"), (grid.goal, "tab:green", "goal")):
+        ax.scatter([c], [r], s=260, color=color, edgecolor="k", zorder=3, label=label)
+    ax.set_xticks(np.arange(-0.5, size), minor=True)
+    ax.set_yticks(np.arange(-0.5, size), minor=True)
+    ax.grid(which="minor", color="0.75", linewidth=0.5)
+    ax.tick_params(which="both", length=0)
+    ax.set_title(f"seed {seed}: zones centred at {list(grid.zone_centers)} (olive)", fontsize=10)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.06), ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def plot_tradeoff(cfg: DictConfig, summary: dict, path: Path) -> None:
@@ -297,7 +382,10 @@ def plot_tradeoff(cfg: DictConfig, summary: dict, path: Path) -> None:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("normalised return (0 random, 1 CMDP optimum)")
     axes[1].legend(fontsize=8, loc="lower right")
-    fig.suptitle(f"Constrained gridworld, exact solutions (cost model: {cfg.grid.cost_model})", fontsize=11)
+    fig.suptitle(
+        f"Constrained gridworld, exact solutions (layout: {cfg.grid.layout}, cost model: {cfg.grid.cost_model})",
+        fontsize=11,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -315,7 +403,7 @@ def plot_quality_curves(cfg: DictConfig, summary: dict, path: Path) -> None:
                 pts = [(q, summary[sweep][q][method]) for q in levels if summary[sweep][q][method]["n"]]
                 qs = [100 * q for q, _ in pts]
                 mean = np.array([e[key][0] for _, e in pts])
-                se = np.array([e[key][1] for _, e in pts])
+                se = np.nan_to_num(np.array([e[key][1] for _, e in pts]))  # nan for one seed: no bar
                 ax.errorbar(qs, mean, yerr=se, color=color, marker=marker, capsize=3, label=method)
             if key == "cost":
                 ax.axhline(1.0, color="k", linestyle="--", linewidth=0.8)
@@ -338,9 +426,9 @@ def main(cfg: DictConfig) -> dict:
     start = time.perf_counter()
     results = [run_seed(cfg, seed) for seed in tqdm(seeds, desc="seeds", disable=not cfg.progress)]
     summary = summarise(cfg, results)
-    references = reference_summary(results)
+    references = reference_summary(results, float(cfg.grid.cost_limit))
     solvable = solvability(results, STRICT)
-    table = markdown(cfg, summary, references, solvable, len(seeds))
+    table = markdown(cfg, summary, references, solvable, results)
     seconds = time.perf_counter() - start
     (run_dir / "results.md").write_text(table + "\n")
     payload = {
@@ -351,8 +439,10 @@ def main(cfg: DictConfig) -> dict:
         "strict_spoildice_solvable": solvable,
         "seeds": results,
     }
-    (run_dir / "results.json").write_text(json.dumps(payload, indent=1))
+    (run_dir / "results.json").write_text(json.dumps(to_json(payload), indent=1, allow_nan=False))
     if cfg.figures:
+        grid = make_grid(cfg, seeds[0])
+        plot_layout(grid, make_demonstrators(grid), seeds[0], run_dir / "layout.png")
         plot_tradeoff(cfg, summary, run_dir / "tradeoff.png")
         plot_quality_curves(cfg, summary, run_dir / "quality.png")
     print(table)

@@ -1,7 +1,7 @@
 """Train a PPO (``ppo.lagrangian=false``) or PPO-Lagrangian (``ppo.lagrangian=true``) expert on a Safety-Gymnasium
 task and checkpoint it periodically (actor weights + the batch's mean episode return and cost).
 
-    python recipes/train_experts.py task=SafetyPointCircle1-v0 ppo.lagrangian=true
+    python recipes/train_experts.py env_id=SafetyPointCircle1-v0 ppo.lagrangian=true
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from spoil_torchrl.tasks import get_env_task
 @hydra.main(config_path="../configs", config_name="train_experts", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     torch.set_num_threads(cfg.threads)
-    task = get_env_task(cfg.task)
+    task = get_env_task(cfg.env_id)
     config = PPOConfig(**OmegaConf.to_container(cfg.ppo))
     config.hidden_cells = tuple(config.hidden_cells)
     run_dir = Path(HydraConfig.get().runtime.output_dir)

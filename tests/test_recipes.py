@@ -46,6 +46,7 @@ def test_train_experts_recipe_tiny(tmp_path):
     cmd = [
         sys.executable,
         str(ROOT / "recipes" / "train_experts.py"),
+        "env_id=SafetyPointCircle1-v0",  # the key must not clash with the main recipe's task/ config group
         "ppo.total_frames=500",
         "ppo.frames_per_batch=500",
         "ppo.minibatch_size=250",
@@ -125,3 +126,75 @@ def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dat
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode != 0 and "train.eval_interval must be >= 1" in proc.stderr
+
+
+def test_report_tables_and_plots_finished_runs(tmp_path):
+    def run(folder, algo, seed, feasible, cost, status="finished"):
+        results = {
+            "algo": algo,
+            "dataset": "d",
+            "seed": seed,
+            "status": status,
+            "total_seconds": 60.0,
+            "aggregate": {
+                "normalized_feasible_return": feasible,
+                "normalized_cost": cost,
+                "normalized_return": 1.0,
+            },
+        }
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "results.json").write_text(json.dumps(results))
+
+    run("a0", "spoildice", 0, 0.5, 0.5)
+    run("a1", "spoildice", 1, 0.7, 0.9)
+    run("b0", "bc", 0, 0.3, 4.0)
+    run("b1", "bc", 1, 0.9, 9.0, status="training")  # unfinished: ignored
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "report.py"),
+        str(tmp_path),
+        "--out",
+        str(tmp_path / "t.md"),
+        "--plot",
+        str(tmp_path / "t.png"),
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    table = (tmp_path / "t.md").read_text()
+    assert "| spoildice | 2 | **0.60 ± 0.10** | **0.70 ± 0.20** |" in table  # safe on average: bold
+    assert "| bc | 1 | 0.30 | 4.00 |" in table  # one seed: no standard error, not safe
+    assert (tmp_path / "t.png").stat().st_size > 1000
+
+
+def test_collect_demos_recipe_reuses_a_cached_dataset(tmp_path, monkeypatch):
+    import importlib.util
+
+    import pytest
+
+    if importlib.util.find_spec("safety_gymnasium") is None:
+        pytest.skip("safety-gymnasium not installed")
+    from spoil_torchrl.data import Segment, collect
+    from spoil_torchrl.data.generated import get_generated
+
+    # a cached file with the right fingerprint is reused: no rollout, just the Table-I-style summary
+    spec = get_generated("point-circle1-controlled")
+    collect(
+        spec.env_id,
+        [Segment("safe-high", "zoo:safe-high", 1)],
+        tmp_path / "point-circle1-controlled.hdf5",
+        num_envs=1,
+        reference_episodes=1,
+        progress=False,
+        metadata={"fingerprint": spec.fingerprint(8), "name": spec.name},
+    )
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "collect_demos.py"),
+        "name=point-circle1-controlled",
+        "progress=false",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
+    env = {**__import__("os").environ, "SPOIL_TORCHRL_DATA_DIR": str(tmp_path)}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| safe-high | 1 |" in proc.stdout

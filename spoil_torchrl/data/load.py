@@ -92,7 +92,7 @@ def load_episodes(
         from spoil_torchrl.data.generated import GENERATED_DATASETS
 
         if rest in GENERATED_DATASETS:
-            how = f"make it with `python recipes/collect_demos.py dataset={rest}`"
+            how = f"make it with `python recipes/collect_demos.py name={rest}`"
         else:
             how = (
                 f"it is not one of the known generated datasets ({', '.join(GENERATED_DATASETS)}); add it to "

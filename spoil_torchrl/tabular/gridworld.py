@@ -8,10 +8,31 @@ along the main diagonal per seed, gamma = 0.95, delta_c = 1e-4.
 
 Readings where the paper is silent (Figure 3a is not available as text):
 
-- **Start and goal**: ``start=(0, 0)`` and ``goal=(size-1, size-1)``, the two ends of the main diagonal, so the
-  zones lie on the direct (diagonal) route. Both are arguments.
-- **Zones**: ``n_zones=3`` 3 x 3 zones whose centres are distinct diagonal cells ``(k, k)`` drawn uniformly from
-  the ``k`` whose zone covers neither start nor goal (``k = 2 .. size-3``); zones may touch or overlap.
+- **Layout** (``layout=``, see :data:`LAYOUTS`): section 5.1 asks for a trade-off, "navigate from the start to
+  the goal as quickly as possible while avoiding 3 x 3 unsafe zones arranged along the main diagonal", so
+  every cost-free route should be longer than the shortest route (so lower return at gamma = 0.95). A
+  shortest route is monotone (it never moves away from the goal), and a 4-connected route from one side of
+  the main diagonal to the other must step on a diagonal cell ``(k, k)``; zones centred on the diagonal
+  therefore block every shortest route only if start and goal lie on *opposite* sides of it and every
+  diagonal cell of the rectangle they span is covered.
+
+  - ``"across"`` (the default): start ``(size // 2, 0)`` and goal ``(size // 2, size - 1)``, the middles of
+    the left and right edges, and 4 zones. The unique shortest route is the middle row (10 moves), which
+    crosses the diagonal at the centre cell; a route that crosses at ``(k, k)`` takes
+    ``size - 1 + 2 |k - size // 2|`` moves. The route along the middle row is blocked whenever a zone is
+    centred at ``k = 4, 5`` or ``6``, which 4 zones drawn from ``2 .. 8`` miss only in 1 layout of 35
+    (``{2, 3, 7, 8}``; in none of seeds 0 .. 49); the cost-free detour is then 2 .. 10 moves longer (via the
+    nearest uncovered diagonal cell, at worst round a corner of the grid, which no zone covers), so the CMDP
+    optimum's return is 0.60 .. 0.91 of the MDP optimum's (mean 0.71 over seeds 0 .. 49).
+  - ``"along"`` (the layout before): start ``(0, 0)`` and goal ``(size - 1, size - 1)``, the two ends of the
+    main diagonal, and 3 zones. The zones lie on the diagonal route, but the routes along the grid's edges are
+    as short and never touch a zone, so d*_M and d*_Mc have (almost) the same return and d*_M is itself
+    feasible in some seeds: no return/safety trade-off.
+
+- **Zones**: ``n_zones`` 3 x 3 zones whose centres are distinct diagonal cells ``(k, k)`` drawn uniformly
+  (``np.random.default_rng(seed)``) from the ``k`` whose zone covers no corner of the grid, nor start nor goal
+  (``k = 2 .. size-3``, :func:`zone_candidates`); zones may touch or overlap. Keeping the corners free keeps a
+  cost-free route (round the grid's edge) in every layout, so the CMDP optimum always reaches the goal.
 - **Walls** keep the agent in place (a move off the grid leaves the cell unchanged).
 - **Reward**: ``r(goal, a) = 1`` for every action; the goal then leads to the absorbing state with
   probability 1 (whatever the action), and the absorbing state stays absorbing with ``r = c = 0``.
@@ -22,11 +43,7 @@ Readings where the paper is silent (Figure 3a is not available as text):
 - **Demonstrations**: d_P and d_S are the mixtures of :func:`performant_distribution` and
   :func:`safe_distribution`; the o = 0 behaviour is :func:`safe_random_policy`.
 
-With these readings the unconstrained optimum runs along the top row and down the second-to-last column (the
-wall on one side makes slips cheaper; it ignores the zones, so it is the same path in every layout). Its main
-route crosses a zone only in layouts with a zone at ``k = 8``; elsewhere it crosses only from cells it reaches
-by slipping. The safe route along the edges is as short as the unsafe one, so d*_M and d*_Mc have (almost) the
-same return.
+:func:`route_lengths` gives the shortest and the shortest cost-free number of moves of a layout.
 """
 
 from __future__ import annotations
@@ -142,11 +159,33 @@ def zone_cost(transition: np.ndarray, zone: np.ndarray, cost_model: str = "cross
     raise ValueError(f"cost_model must be one of {COST_MODELS}, got {cost_model!r}")
 
 
+#: The layouts of :func:`make_gridworld`: ``name -> (start, goal, default number of zones)`` for a grid of
+#: ``size`` cells a side (see the module docstring).
+LAYOUTS = {
+    "across": lambda size: ((size // 2, 0), (size // 2, size - 1), 4),
+    "along": lambda size: ((0, 0), (size - 1, size - 1), 3),
+}
+
+
+def zone_candidates(size: int, start: tuple[int, int], goal: tuple[int, int]) -> list[int]:
+    """The diagonal indices ``k`` a zone centred at ``(k, k)`` may take: those whose 3 x 3 zone covers no corner
+    of the grid, nor the start or the goal (``k = 2 .. size - 3`` for both layouts of :data:`LAYOUTS`).
+
+    Examples:
+        >>> zone_candidates(11, (5, 0), (5, 10))
+        [2, 3, 4, 5, 6, 7, 8]
+    """
+    keep = [(0, 0), (0, size - 1), (size - 1, 0), (size - 1, size - 1), tuple(start), tuple(goal)]
+    cells = [r * size + c for r, c in keep]
+    return [k for k in range(size) if not zone_cells(size, [k])[cells].any()]
+
+
 def make_gridworld(
     seed: int,
     *,
     size: int = 11,
-    n_zones: int = 3,
+    layout: str = "across",
+    n_zones: int | None = None,
     start: tuple[int, int] | None = None,
     goal: tuple[int, int] | None = None,
     slip: float = 0.01,
@@ -156,26 +195,32 @@ def make_gridworld(
 ) -> Gridworld:
     """The appendix-E.1 gridworld for one seed (zone centres from ``np.random.default_rng(seed)``).
 
-    Defaults are the paper's values and the readings listed in the module docstring.
+    ``layout`` (a key of :data:`LAYOUTS`) gives the start, the goal and the number of zones wherever
+    ``start``, ``goal`` or ``n_zones`` is ``None``. Zone centres are ``n_zones`` distinct draws from
+    :func:`zone_candidates`. Defaults are the paper's values and the readings listed in the module docstring.
 
     Examples:
         >>> grid = make_gridworld(0)
         >>> grid.mdp.n_states, grid.mdp.n_actions, grid.mdp.gamma, grid.cost_limit
         (122, 4, 0.95, 0.0001)
+        >>> grid.start, grid.goal, len(grid.zone_centers)
+        ((5, 0), (5, 10), 4)
+        >>> make_gridworld(0, layout="along").start, make_gridworld(0, layout="along").zone_centers
+        ((0, 0), (5, 6, 8))
     """
-    start = (0, 0) if start is None else tuple(start)
-    goal = (size - 1, size - 1) if goal is None else tuple(goal)
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {tuple(LAYOUTS)}, got {layout!r}")
+    default_start, default_goal, default_zones = LAYOUTS[layout](size)
+    start = default_start if start is None else tuple(start)
+    goal = default_goal if goal is None else tuple(goal)
+    n_zones = default_zones if n_zones is None else int(n_zones)
     for name, (r, c) in (("start", start), ("goal", goal)):
         if not (0 <= r < size and 0 <= c < size):
             raise ValueError(f"{name} {(r, c)} lies outside the {size} x {size} grid")
     if start == goal:
         raise ValueError("start and goal must differ")
     rng = np.random.default_rng(seed)
-    candidates = [
-        k
-        for k in range(size)
-        if not zone_cells(size, [k])[[start[0] * size + start[1], goal[0] * size + goal[1]]].any()
-    ]
+    candidates = zone_candidates(size, start, goal)
     if not 0 <= n_zones <= len(candidates):
         raise ValueError(f"n_zones must lie in [0, {len(candidates)}] for this grid, got {n_zones}")
     centers = tuple(sorted(int(k) for k in rng.choice(candidates, size=n_zones, replace=False)))
@@ -189,6 +234,45 @@ def make_gridworld(
     init[start[0] * size + start[1]] = 1.0
     mdp = TabularCMDP(transition, reward, cost, init, gamma)
     return Gridworld(mdp, size, start, goal, centers, zone, float(cost_limit))
+
+
+def route_lengths(grid: Gridworld) -> tuple[int, int | None]:
+    """The number of moves of the shortest route from start to goal, and of the shortest *cost-free* one (no
+    move from outside the zones into a zone cell), both without slips; ``None`` when no cost-free route
+    exists. Breadth-first search over the grid's cells.
+
+    Examples:
+        >>> route_lengths(make_gridworld(0, layout="along"))  # the edge route is as short as the diagonal one
+        (20, 20)
+        >>> grid = make_gridworld(0)  # zones cover the diagonal cells 2 .. 8: cross at (1, 1) instead of (5, 5)
+        >>> grid.zone_centers, route_lengths(grid)
+        ((3, 5, 6, 7), (10, 18))
+    """
+    size = grid.size
+
+    def bfs(safe: bool) -> int | None:
+        start, goal = grid.cell(*grid.start), grid.cell(*grid.goal)
+        dist = {start: 0}
+        frontier = [start]
+        while frontier:
+            nxt = []
+            for s in frontier:
+                if s == goal:
+                    return dist[s]
+                row, col = divmod(s, size)
+                for dr, dc in MOVES:
+                    r, c = row + dr, col + dc
+                    if not (0 <= r < size and 0 <= c < size):
+                        continue
+                    t = r * size + c
+                    if t in dist or (safe and grid.zone[t] and not grid.zone[s]):
+                        continue
+                    dist[t] = dist[s] + 1
+                    nxt.append(t)
+            frontier = nxt
+        return None
+
+    return bfs(False), bfs(True)
 
 
 def safe_random_policy(grid: Gridworld) -> np.ndarray:

@@ -146,7 +146,7 @@ def test_ensure_generated_makes_once_then_reuses(tmp_path, monkeypatch):
         "tiny", ENV, (Segment("unsafe-medium", "zoo:unsafe-medium", 1),), "test"
     )
     monkeypatch.setitem(generated_module.GENERATED_DATASETS, "tiny", tiny)
-    with pytest.raises(DatasetError, match="collect_demos.py dataset=tiny"):
+    with pytest.raises(DatasetError, match="collect_demos.py name=tiny"):
         load_episodes("generated:tiny")
     made = []
     real = generated_module.collect

@@ -141,7 +141,7 @@ def test_dsrl_source_reads_the_cache_and_checks_dims(tmp_path, monkeypatch):
 
 def test_generated_source(tmp_path, monkeypatch):
     monkeypatch.setenv("SPOIL_TORCHRL_DATA_DIR", str(tmp_path))
-    with pytest.raises(DatasetError, match="collect_demos.py dataset=point-circle1-mixed"):
+    with pytest.raises(DatasetError, match="collect_demos.py name=point-circle1-mixed"):
         load_episodes("generated:point-circle1-mixed")
     with pytest.raises(DatasetError, match="not one of the known generated datasets .point-circle1-mixed"):
         load_episodes("generated:pointcircle1-mixed")

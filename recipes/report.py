@@ -1,0 +1,142 @@
+"""Collect finished runs of ``recipes/spoildice_dsrl.py`` into a Table-1-style markdown table and a trade-off plot.
+
+    python recipes/report.py runs/final --out docs/results.md --plot docs/tradeoff.png
+
+Every ``results.json`` under the given folders with ``status == "finished"`` counts. Per dataset and algorithm,
+each seed contributes its aggregate (the mean of its last evaluations, as the paper does); the table gives the
+mean ± standard error over seeds of the normalised feasible return and the normalised cost, and marks safe
+results (mean normalised cost <= 1) in bold, as the paper's Table 1 / Table L. The plot puts normalised cost on
+x and normalised feasible return on y, one marker per algorithm with standard-error bars, the safe region
+(cost <= 1) shaded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+
+from spoil_torchrl.eval import mean_stderr
+
+METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
+
+
+def load_runs(folders: list[Path]) -> dict[tuple[str, str], list[dict]]:
+    """``(dataset, algo) -> [results of each finished seed]``, sorted by seed."""
+    runs: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for folder in folders:
+        if not folder.exists():
+            raise FileNotFoundError(f"{folder}: no such folder")
+        for path in sorted(folder.rglob("results.json")):
+            results = json.loads(path.read_text())
+            if results.get("status") == "finished":
+                runs[(results["dataset"], results["algo"])].append(results)
+    for group in runs.values():
+        group.sort(key=lambda r: r["seed"])
+    return dict(runs)
+
+
+def summarize(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, str], dict]:
+    """Per group: seeds and mean / standard error of each metric's per-seed aggregate."""
+    out = {}
+    for key, group in runs.items():
+        row = {"seeds": [r["seed"] for r in group], "minutes": sum(r["total_seconds"] for r in group) / 60}
+        for metric in METRICS:
+            row[metric] = mean_stderr(torch.tensor([r["aggregate"][metric] for r in group]))
+        out[key] = row
+    return out
+
+
+def _cell(mean: float, se: float, bold: bool = False) -> str:
+    text = f"{mean:.2f} ± {se:.2f}" if math.isfinite(se) else f"{mean:.2f}"
+    return f"**{text}**" if bold else text
+
+
+def markdown(summary: dict[tuple[str, str], dict]) -> str:
+    """One table per dataset: normalised feasible return and cost (mean ± s.e. over seeds); safe in bold."""
+    lines = []
+    for dataset in sorted({d for d, _ in summary}):
+        lines += [
+            f"**{dataset}**",
+            "",
+            "| algorithm | seeds | normalised feasible return | normalised cost | normalised return |",
+            "|---|---|---|---|---|",
+        ]
+        for (d, algo), row in sorted(summary.items()):
+            if d != dataset:
+                continue
+            safe = row["normalized_cost"][0] <= 1.0
+            lines.append(
+                f"| {algo} | {len(row['seeds'])} | {_cell(*row['normalized_feasible_return'], bold=safe)} | "
+                f"{_cell(*row['normalized_cost'], bold=safe)} | {_cell(*row['normalized_return'])} |"
+            )
+        lines.append("")
+    lines.append(
+        "Bold: safe on average (normalised cost <= 1). Each seed contributes the mean of its last "
+        "evaluations (results.json `aggregate`); ± is the standard error over seeds."
+    )
+    return "\n".join(lines)
+
+
+def plot(summary: dict[tuple[str, str], dict], path: Path) -> None:
+    """Normalised cost (x) against normalised feasible return (y), the safe region shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    datasets = sorted({d for d, _ in summary})
+    fig, axes = plt.subplots(1, len(datasets), figsize=(5 * len(datasets), 4), squeeze=False)
+    for ax, dataset in zip(axes[0], datasets, strict=True):
+        rows = {algo: row for (d, algo), row in summary.items() if d == dataset}
+        x_max = max(1.5, *(row["normalized_cost"][0] * 1.15 for row in rows.values()))
+        ax.axvspan(0, 1, color="tab:green", alpha=0.12, label="safe (cost <= 1)")
+        for algo, row in sorted(rows.items()):
+            (x, xe), (y, ye) = row["normalized_cost"], row["normalized_feasible_return"]
+            ax.errorbar(
+                x,
+                y,
+                xerr=0 if math.isnan(xe) else xe,
+                yerr=0 if math.isnan(ye) else ye,
+                fmt="o",
+                capsize=3,
+                label=algo,
+            )
+        ax.set_xlim(0, x_max)
+        y_values = [row["normalized_feasible_return"][0] for row in rows.values()]
+        ax.set_ylim(min(0.0, *y_values) - 0.05, max(1.0, *y_values) + 0.05)
+        ax.set_xlabel("normalised cost")
+        ax.set_ylabel("normalised feasible return")
+        ax.set_title(dataset)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("folders", nargs="+", type=Path, help="folders searched for results.json")
+    parser.add_argument("--out", type=Path, help="write the markdown table here (also printed)")
+    parser.add_argument("--plot", type=Path, help="save the trade-off scatter PNG here")
+    args = parser.parse_args()
+    runs = load_runs(args.folders)
+    if not runs:
+        raise SystemExit(f"no finished results.json under {', '.join(map(str, args.folders))}")
+    summary = summarize(runs)
+    text = markdown(summary)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    if args.plot:
+        plot(summary, args.plot)
+
+
+if __name__ == "__main__":
+    main()
