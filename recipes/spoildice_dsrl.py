@@ -40,7 +40,7 @@ from spoil_torchrl.eval.evaluator import METRICS
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers import offline_trainer
-from spoil_torchrl.trainers.algorithms import ALGORITHMS
+from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
 
 
 def _json_safe(value):
@@ -154,8 +154,15 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, obs_dim, act_dim, 
     task, train, config_hash = get_env_task(cfg.task.env_id), cfg.train, results["config_hash"]
 
     # Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U).
+    # (the constraint, the dataset's episode-cost threshold over the task's horizon, is read by COptiDICE only)
     training = ALGORITHMS[cfg.algo.name](
-        cfg.algo, buffers, obs_dim, act_dim, logger=logger, progress=cfg.progress
+        cfg.algo,
+        buffers,
+        obs_dim,
+        act_dim,
+        constraint=EpisodeConstraint(evaluator.cost_threshold, task.episode_length),
+        logger=logger,
+        progress=cfg.progress,
     )
     results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - start)
 

@@ -115,6 +115,22 @@ def test_dsrl_recipe_safedice_gets_its_nonpreferred_role(tmp_path, tiny_pc1_data
     assert 0.0 <= results["diagnostics"]["alpha"] < 1.0
 
 
+def test_dsrl_recipe_dwbc_s(tmp_path, tiny_pc1_dataset):
+    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=dwbc_s", "logger=none")
+    assert results["algo"] == "dwbc_s" and results["status"] == "finished"
+    assert [e["step"] for e in results["evaluations"]] == [100, 200]
+    assert "unlabeled: safe" in (tmp_path / "config.yaml").read_text()
+
+
+def test_dsrl_recipe_coptidice_gets_the_episode_constraint(tmp_path, tiny_pc1_dataset):
+    from spoil_torchrl.objectives import per_step_cost_limit
+
+    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=coptidice", "logger=none")
+    assert results["algo"] == "coptidice" and results["status"] == "finished"
+    threshold = results["data"]["cost_threshold"]
+    assert results["diagnostics"]["cost_limit"] == per_step_cost_limit(threshold, 500, 0.99)
+
+
 def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dataset):
     cmd = [
         sys.executable,

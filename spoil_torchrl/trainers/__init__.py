@@ -4,7 +4,8 @@ from spoil_torchrl.trainers.offline import (
     MultiLossStepper,
     OfflineBatchSource,
     SampleBuffers,
+    StepEvery,
     offline_trainer,
 )
 
-__all__ = ["MultiLossStepper", "OfflineBatchSource", "SampleBuffers", "offline_trainer"]
+__all__ = ["MultiLossStepper", "OfflineBatchSource", "SampleBuffers", "StepEvery", "offline_trainer"]

@@ -7,7 +7,9 @@ cut, and the one-time annotation of the unlabeled storage), and returns :class:`
 and optimisers of the main stage and the loss that owns the policy. ``ALGORITHMS`` maps the ``algo.name`` of
 the recipe to its builder; adding a baseline means adding a builder here and a config in ``configs/algo/``
 (a baseline that needs a role other than D_S, D_P, D_U lists it in the config's ``extra_roles``, as SafeDICE
-does with its non-preferred D_N).
+does with its non-preferred D_N). Every builder also takes the :class:`EpisodeConstraint` of the run (the
+dataset's episode-cost threshold and the task's horizon); only COptiDICE, which constrains the true cost,
+reads it.
 """
 
 from __future__ import annotations
@@ -24,16 +26,28 @@ from torchrl.objectives import LossModule
 from spoil_torchrl.data.buffers import DualDemoBuffers
 from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
 from spoil_torchrl.objectives import (
+    COptiDICELoss,
     DemoDICELoss,
+    DWBCLoss,
     PUDiscriminatorLoss,
     SafeDICELoss,
     SpoilDICELoss,
     SupportEstimator,
     WeightedBCLoss,
+    per_step_cost_limit,
     safedice_auto_alpha,
     safedice_reward,
 )
-from spoil_torchrl.trainers.offline import MultiLossStepper, offline_trainer
+from spoil_torchrl.trainers.offline import MultiLossStepper, StepEvery, offline_trainer
+
+
+@dataclass(frozen=True)
+class EpisodeConstraint:
+    """The run's safety constraint as the evaluation sees it: episodes of at most ``episode_length`` steps (the
+    task's time limit T) whose summed cost should stay within ``cost_threshold`` (the prepared dataset's)."""
+
+    cost_threshold: float
+    episode_length: int
 
 
 @dataclass
@@ -118,6 +132,7 @@ def build_spoildice(
     *,
     logger=None,
     progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """SpoilDICE (Algorithm 1). Stage 1: C_P and C_S (Eq. 16-17), log r_P (Eq. 18), the kappa-quantile support
     cut fitted on D_S (Eq. 13), and D_U annotated once with ``log_ratio_performant`` and ``safe_support``.
@@ -159,6 +174,7 @@ def build_bc(
     *,
     logger=None,
     progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """BC: maximum likelihood on D_P (``cfg["role"]``, default ``"performant"``), no pre-training."""
     policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=cfg.get("role", "performant"))
@@ -182,6 +198,7 @@ def build_fbc(
     *,
     logger=None,
     progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """Filtered BC (paper section 5, Table B): NLL on D_P weighted by the estimated safe support 1_S (C_S
     against D_U, the kappa cut on D_S), i.e. BC on the performant transitions inside the safe support."""
@@ -204,6 +221,7 @@ def build_jfbc(
     *,
     logger=None,
     progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """Joint filtered BC (paper section 5): NLL on D_U weighted by 1_S * 1_P, both kappa cuts (Eq. 13) of
     discriminators trained against D_U (C_S on D_S, C_P on D_P)."""
@@ -284,6 +302,7 @@ def build_demodice_s(
     *,
     logger=None,
     progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """DemoDICE-S (paper section 5): min KL(d||d_P) + alpha KL(d||d_S) with D_S as the samples. C_P is trained
     against D_S, so its logit is the reward log d_P/d_S; D_S is annotated with ``log_ratio_performant_safe``
@@ -301,6 +320,7 @@ def build_demodice_u(
     *,
     logger=None,
     progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """DemoDICE-U (paper section 5; the original DemoDICE with D_U as its union data): min KL(d||d_P) +
     alpha KL(d||d_U); C_P against D_U (Eq. 16) gives the reward log r_P on D_U (``log_ratio_performant``) and
@@ -318,6 +338,7 @@ def build_safedice(
     *,
     logger=None,
     progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """SafeDICE (Jang et al., 2023; paper section 5 with the unsafe episodes as non-preferred D_N). Stage 1: the
     discriminator of D_N against D_U (Eq. 16 with D_N as positives), frozen; D_U annotated once with its logit
@@ -371,6 +392,99 @@ def build_safedice(
     return PolicyTraining(stepper, policy_loss, diagnostics)
 
 
+def build_dwbc_s(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
+) -> PolicyTraining:
+    """DWBC-S (paper section 5; Xu et al., 2022): DWBC with ``cfg["expert"]`` (D_P) as its expert data and
+    ``cfg["unlabeled"]`` (D_S) as its unlabeled data, "recovering performant behaviours from safe demonstrations"
+    (see :class:`DWBCLoss`). No pre-training: the discriminator D(s, a, log pi) and the policy are trained jointly
+    by one loss; the discriminator's optimiser steps every ``cfg["discriminator"]["update_interval"]`` steps (the
+    reference code: 100)."""
+    roles = (cfg["expert"], cfg["unlabeled"])
+    missing = [role for role in roles if role not in buffers.roles]
+    if missing:
+        raise ValueError(f"DWBC-S reads the roles {roles}, but the buffers have no {missing}")
+    disc = cfg["discriminator"]
+    loss = DWBCLoss(
+        _actor(cfg, obs_dim, act_dim),
+        make_discriminator(
+            obs_dim, act_dim, hidden_cells=tuple(disc["hidden_cells"]), extra_inputs={"policy_log_prob": 1}
+        ),
+        alpha=float(cfg["alpha"]),
+        eta=float(cfg["eta"]),
+        reference_offsets=bool(cfg.get("reference_offsets", True)),
+        expert=cfg["expert"],
+        unlabeled=cfg["unlabeled"],
+    )
+    optimizers = [
+        _adam(loss.actor_network_params.values(True, True), cfg["actor_lr"]),
+        StepEvery(
+            _adam(loss.discriminator_network_params.values(True, True), disc["lr"]),
+            int(disc["update_interval"]),
+        ),
+    ]
+    return PolicyTraining(MultiLossStepper({"dwbc": loss}, optimizers), loss, {})
+
+
+def build_coptidice(
+    cfg: Mapping[str, Any],
+    buffers: DualDemoBuffers,
+    obs_dim: int,
+    act_dim: int,
+    *,
+    logger=None,
+    progress: bool = True,
+    constraint: EpisodeConstraint | None = None,
+) -> PolicyTraining:
+    """COptiDICE (Lee et al., 2022; paper section 5 with the dataset's true reward and cost on D_U). No
+    pre-training; main stage: (nu, chi, tau, lambda) by :class:`COptiDICELoss` and pi by weighted BC on D_U. The
+    per-step cost limit is ``cfg["cost_limit"]`` when set, else :func:`per_step_cost_limit` of the
+    ``constraint``'s episode threshold over its episode length (the main recipe passes the dataset's threshold
+    and the task's time limit)."""
+    gamma = float(cfg["gamma"])
+    limit = cfg.get("cost_limit")
+    if limit is None:
+        if constraint is None:
+            raise ValueError(
+                "COptiDICE needs its cost limit: pass constraint=EpisodeConstraint(threshold, episode_length) "
+                "or set algo.cost_limit (per step, on the normalised discounted occupancy)"
+            )
+        limit = per_step_cost_limit(constraint.cost_threshold, constraint.episode_length, gamma)
+    unlabeled = buffers["unlabeled"].storage[:]
+    diagnostics = {
+        "cost_limit": float(limit),
+        "cost_rate_unlabeled": float(unlabeled["next", "cost"].float().mean()),
+        "reward_rate_unlabeled": float(unlabeled["next", "reward"].float().mean()),
+    }
+    hidden = tuple(cfg["hidden_cells"])
+    dice = COptiDICELoss(
+        make_value_network(obs_dim, hidden_cells=hidden),
+        make_value_network(obs_dim, hidden_cells=hidden, out_key="chi"),
+        cost_limit=float(limit),
+        alpha=float(cfg["alpha"]),
+        gamma=gamma,
+        cost_ub_epsilon=float(cfg["cost_ub_epsilon"]),
+        gradient_penalty=float(cfg["nu_gradient_penalty"]),
+        init_lagrange=float(cfg["init_lagrange"]),
+    )
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="dice_weight")
+    optimizers = [
+        _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
+        _adam(dice.chi_network_params.values(True, True), cfg["nu_lr"]),
+        _adam([dice.lagrange_param, dice.tau_param], cfg["lagrange_lr"]),
+        _adam(policy_loss.parameters(), cfg["actor_lr"]),
+    ]
+    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
 ALGORITHMS: dict[str, Callable[..., PolicyTraining]] = {
     "spoildice": build_spoildice,
     "bc": build_bc,
@@ -379,4 +493,6 @@ ALGORITHMS: dict[str, Callable[..., PolicyTraining]] = {
     "demodice_s": build_demodice_s,
     "demodice_u": build_demodice_u,
     "safedice": build_safedice,
+    "dwbc_s": build_dwbc_s,
+    "coptidice": build_coptidice,
 }

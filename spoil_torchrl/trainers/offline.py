@@ -93,6 +93,52 @@ class SampleBuffers:
         return self.sample()
 
 
+class StepEvery:
+    """An optimiser that steps only on every ``interval``-th call of :meth:`step` (calls ``interval``,
+    ``2 * interval``, ...), e.g. DWBC's discriminator, which its reference code updates once per 100 policy steps.
+
+    It wraps the optimiser for :class:`MultiLossStepper`, which steps every optimiser each step; the gradient of
+    the skipped steps is cleared by the next ``zero_grad``, as in the reference. The call count is part of the
+    state dict.
+
+    Examples:
+        >>> p = torch.nn.Parameter(torch.zeros(()))
+        >>> opt = StepEvery(torch.optim.SGD([p], lr=1.0), interval=3)
+        >>> for _ in range(6):
+        ...     opt.zero_grad()
+        ...     (-p).backward()
+        ...     opt.step()
+        >>> p.item()  # stepped at calls 3 and 6
+        2.0
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer, interval: int) -> None:
+        if int(interval) != interval or interval < 1:
+            raise ValueError(f"interval must be a positive integer, got {interval}")
+        self.optimizer = optimizer
+        self.interval = int(interval)
+        self.calls = 0
+
+    @property
+    def param_groups(self) -> list[dict[str, Any]]:
+        return self.optimizer.param_groups
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        self.optimizer.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        self.calls += 1
+        if self.calls % self.interval == 0:
+            self.optimizer.step()
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"optimizer": self.optimizer.state_dict(), "calls": self.calls}
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        self.optimizer.load_state_dict(state_dict["optimizer"])
+        self.calls = int(state_dict["calls"])
+
+
 class MultiLossStepper(OptimizationStepper):
     """One optimisation step of several LossModules with their own optimisers (and LR schedules).
 
@@ -103,7 +149,7 @@ class MultiLossStepper(OptimizationStepper):
 
     Args:
         losses: name -> LossModule.
-        optimizers: every optimiser over the losses' parameters.
+        optimizers: every optimiser over the losses' parameters (a :class:`StepEvery` steps less often).
         schedulers: LR schedulers stepped after the optimisers.
     """
 

@@ -243,3 +243,108 @@ def test_builder_trains_safedice_with_a_nonpreferred_role(tiny_pc1_dataset):
         cfg | {"alpha": 0.2, "standardize_reward": False}, buffers, 28, 2, progress=False
     )
     assert fixed.stepper.losses["dice"].alpha == 0.2 and fixed.stepper.losses["dice"].reward_std == 1.0
+
+
+def test_step_every_steps_on_every_nth_call_and_keeps_its_count():
+    from spoil_torchrl.trainers import StepEvery
+
+    p = torch.nn.Parameter(torch.zeros(()))
+    opt = StepEvery(torch.optim.SGD([p], lr=1.0), interval=2)
+    for _ in range(5):
+        opt.zero_grad()
+        (-p).backward()
+        opt.step()
+    assert p.item() == 2.0 and opt.calls == 5  # stepped at calls 2 and 4
+    other = StepEvery(torch.optim.SGD([torch.nn.Parameter(torch.zeros(()))], lr=1.0), interval=2)
+    other.load_state_dict(opt.state_dict())
+    assert other.calls == 5 and other.param_groups[0]["lr"] == 1.0
+    with pytest.raises(ValueError, match="interval"):
+        StepEvery(torch.optim.SGD([p], lr=1.0), interval=0)
+
+
+def test_builder_trains_dwbc_s_jointly(tiny_pc1_dataset):
+    from spoil_torchrl.data import DualDemoBuffers, load_episodes
+    from spoil_torchrl.objectives import DWBCLoss
+    from spoil_torchrl.trainers.algorithms import ALGORITHMS
+
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    roles = {
+        "safe": torch.tensor([0, 1, 3]),
+        "performant": torch.tensor([6, 7]),
+        "unlabeled": torch.arange(12),
+    }
+    buffers = DualDemoBuffers(episodes, roles, batch_size=64, seed=0)
+    cfg = {
+        "distribution": "normal",
+        "hidden_cells": [16],
+        "expert": "performant",
+        "unlabeled": "safe",
+        "alpha": 7.5,
+        "eta": 0.5,
+        "actor_lr": 1e-3,
+        "discriminator": {"hidden_cells": [16], "lr": 1e-3, "update_interval": 3},
+    }
+    training = ALGORITHMS["dwbc_s"](cfg, buffers, 28, 2, progress=False)
+    loss = training.policy_loss
+    assert isinstance(loss, DWBCLoss) and training.stepper.losses == {"dwbc": loss}
+    assert loss.tensor_keys.expert == "performant" and loss.tensor_keys.unlabeled == "safe"
+    assert loss.alpha == 7.5 and loss.offset == 1.0  # the reference's offsets by default
+    disc_before = [p.detach().clone() for p in loss.discriminator_network_params.values(True, True)]
+    actor_before = [p.detach().clone() for p in loss.actor_network_params.values(True, True)]
+    for step in range(3):
+        out = training.stepper.step(None, buffers.sample())
+        assert torch.isfinite(out["dwbc.loss_actor"]) and torch.isfinite(out["dwbc.loss_discriminator"])
+        moved = any(
+            not torch.equal(a, b)
+            for a, b in zip(disc_before, loss.discriminator_network_params.values(True, True), strict=True)
+        )
+        assert moved == (step == 2)  # the discriminator steps on every third call only
+    assert all(
+        not torch.equal(a, b)
+        for a, b in zip(actor_before, loss.actor_network_params.values(True, True), strict=True)
+    )
+    with training.policy() as policy:
+        td = policy(TensorDict({"observation": torch.zeros(3, 28)}, [3]))
+    assert td["action"].shape == (3, 2)
+    with pytest.raises(ValueError, match="nonpreferred"):
+        ALGORITHMS["dwbc_s"](cfg | {"unlabeled": "nonpreferred"}, buffers, 28, 2, progress=False)
+
+
+def test_builder_trains_coptidice_with_the_episode_constraint(tiny_pc1_dataset):
+    from spoil_torchrl.data import DualDemoBuffers, load_episodes
+    from spoil_torchrl.objectives import per_step_cost_limit
+    from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
+
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
+    buffers = DualDemoBuffers(episodes, roles, batch_size=64, seed=0)
+    cfg = {
+        "distribution": "normal",
+        "hidden_cells": [16],
+        "gamma": 0.99,
+        "alpha": 0.01,
+        "cost_ub_epsilon": 0.01,
+        "nu_gradient_penalty": 10.0,
+        "init_lagrange": 1.0,
+        "cost_limit": None,
+        "nu_lr": 1e-3,
+        "lagrange_lr": 1e-3,
+        "actor_lr": 1e-3,
+    }
+    with pytest.raises(ValueError, match="cost limit"):
+        ALGORITHMS["coptidice"](cfg, buffers, 28, 2, progress=False)
+    constraint = EpisodeConstraint(cost_threshold=40.0, episode_length=500)
+    training = ALGORITHMS["coptidice"](cfg, buffers, 28, 2, progress=False, constraint=constraint)
+    dice = training.stepper.losses["dice"]
+    assert dice.cost_limit == pytest.approx(per_step_cost_limit(40.0, 500, 0.99))
+    assert training.diagnostics["cost_limit"] == dice.cost_limit
+    assert 0.0 <= training.diagnostics["cost_rate_unlabeled"] <= 1.0
+    assert training.policy_loss.tensor_keys.role == "unlabeled"
+    batch = buffers.sample()
+    lagrange = dice.lagrange.item()
+    out = training.stepper.step(None, batch)
+    assert all(torch.isfinite(out[f"dice.{k}"]) for k in ("loss_nu", "loss_chi", "loss_tau", "loss_lagrange"))
+    assert float(out["actor.weight_mean"]) == pytest.approx(1.0, rel=1e-5)
+    assert dice.lagrange.item() != lagrange  # lambda has its optimiser
+    fixed = ALGORITHMS["coptidice"](cfg | {"cost_limit": 0.05}, buffers, 28, 2, progress=False)
+    assert fixed.stepper.losses["dice"].cost_limit == 0.05
