@@ -93,7 +93,13 @@ def plot(summary: dict[tuple[str, str], dict], path: Path) -> None:
     fig, axes = plt.subplots(1, len(datasets), figsize=(5 * len(datasets), 4), squeeze=False)
     for ax, dataset in zip(axes[0], datasets, strict=True):
         rows = {algo: row for (d, algo), row in summary.items() if d == dataset}
-        x_max = max(1.5, *(row["normalized_cost"][0] * 1.15 for row in rows.values()))
+        x_max = max(
+            1.5,
+            *(
+                (m + (0 if math.isnan(e) else e)) * 1.1
+                for m, e in (r["normalized_cost"] for r in rows.values())
+            ),
+        )
         ax.axvspan(0, 1, color="tab:green", alpha=0.12, label="safe (cost <= 1)")
         for algo, row in sorted(rows.items()):
             (x, xe), (y, ye) = row["normalized_cost"], row["normalized_feasible_return"]
