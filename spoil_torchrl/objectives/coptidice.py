@@ -23,7 +23,8 @@ from spoil_torchrl.objectives.functional import (
     nu_gradient_penalty,
     self_normalized_weights,
 )
-from spoil_torchrl.objectives.keys import dice_transitions, get_role, role_key
+from spoil_torchrl.objectives.keys import get_role
+from spoil_torchrl.objectives.nu_values import StateValues
 
 #: Smallest temperature of the cost upper bound (the official code's ``exp(tau) + 1e-6``).
 TAU_MIN = 1e-6
@@ -199,7 +200,7 @@ def _inverse_softplus(x: float) -> float:
     return x + math.log(-math.expm1(-x))
 
 
-class COptiDICELoss(LossModule):
+class COptiDICELoss(StateValues, LossModule):
     r"""COptiDICE (Lee et al., 2022): the constrained DICE dual over :math:`(\nu, \lambda)` and the cost upper bound
     over :math:`(\chi, \tau)`, on the unlabeled role's true reward and cost.
 
@@ -386,46 +387,21 @@ class COptiDICELoss(LossModule):
 
     @property
     def in_keys(self) -> list[NestedKey]:
-        keys = self.tensor_keys
-        state_keys = self.nu_network.in_keys
-        unl = [role_key(keys.unlabeled, k) for k in state_keys]
-        nxt = [role_key(keys.unlabeled, role_key(keys.next, k)) for k in state_keys]
-        extra = [role_key(keys.unlabeled, k) for k in (keys.terminated, keys.reward, keys.cost)]
-        init = [role_key(keys.init, k) for k in state_keys]
-        return unl + nxt + extra + init
-
-    def _value(self, name: str, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
-        n = next(iter(states.values())).shape[0]
-        network = getattr(self, name)
-        with getattr(self, f"{name}_params").to_module(network):
-            out = network(TensorDict(states, [n]))
-        return out.get(network.out_keys[0]).reshape(n)
-
-    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
-        return self._value("nu_network", states)
+        return self._role_in_keys(self.tensor_keys.unlabeled, self.tensor_keys.reward, self.tensor_keys.cost)
 
     def _chi(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
-        return self._value("chi_network", states)
+        return self._values("chi_network", states)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Compute the four losses and write the weights into ``tensordict[unlabeled]``."""
         keys = self.tensor_keys
         data = get_role(tensordict, keys.unlabeled)
-        state_keys = self.nu_network.in_keys
-        batch_shape, init, current, following, terminated = dice_transitions(
-            tensordict,
-            role=keys.unlabeled,
-            init=keys.init,
-            state_keys=state_keys,
-            next_key=keys.next,
-            terminated_key=keys.terminated,
-            loss_name=type(self).__name__,
-        )
-        n, n0 = batch_shape.numel(), init[state_keys[0]].shape[0]
-        states = {k: torch.cat([init[k], current[k], following[k]]) for k in state_keys}
+        transitions = self._transitions(tensordict, keys.unlabeled)
+        batch_shape, init, current, following, terminated = transitions
+        n = batch_shape.numel()
 
-        init_nu, nu, next_nu = self._nu(states).split([n0, n, n])
+        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
         reward = data.get(keys.reward).reshape(n).detach().to(nu.dtype)
         cost = data.get(keys.cost).reshape(n).detach().to(nu.dtype)
         lagrange = self.lagrange
@@ -443,7 +419,7 @@ class COptiDICELoss(LossModule):
         cost_estimate = (w * cost).mean()
         tau = self.tau
         if self.cost_ub_epsilon > 0:
-            init_chi, chi, next_chi = self._chi(states).split([n0, n, n])
+            init_chi, chi, next_chi = self._on_transitions("chi_network", transitions)
             residual = cost_flow_residual(
                 init_chi, w, cost, chi, bellman_backup(next_chi, terminated, self.gamma), self.gamma
             )

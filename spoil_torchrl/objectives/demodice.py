@@ -19,7 +19,8 @@ from spoil_torchrl.objectives.functional import (
     nu_gradient_penalty,
     self_normalized_weights,
 )
-from spoil_torchrl.objectives.keys import dice_transitions, get_role, role_key
+from spoil_torchrl.objectives.keys import get_role
+from spoil_torchrl.objectives.nu_values import StateValues
 
 
 def demodice_dual(init_nu: torch.Tensor, advantage: torch.Tensor, alpha: float, gamma: float) -> torch.Tensor:
@@ -51,7 +52,7 @@ def demodice_log_weight(advantage: torch.Tensor, alpha: float) -> torch.Tensor:
     return advantage / (1.0 + alpha) - 1.0
 
 
-class DemoDICELoss(LossModule):
+class DemoDICELoss(StateValues, LossModule):
     r"""DemoDICE's dual objective over :math:`\nu` (Kim et al., 2022), regularised toward one role's data.
 
     DemoDICE (`reference code <https://github.com/geon-hyeong/imitation-dice>`_) solves
@@ -203,39 +204,18 @@ class DemoDICELoss(LossModule):
 
     @property
     def in_keys(self) -> list[NestedKey]:
-        keys = self.tensor_keys
-        state_keys = self.nu_network.in_keys
-        role = [role_key(keys.regularization, k) for k in state_keys]
-        nxt = [role_key(keys.regularization, role_key(keys.next, k)) for k in state_keys]
-        extra = [role_key(keys.regularization, k) for k in (keys.terminated, keys.reward)]
-        init = [role_key(keys.init, k) for k in state_keys]
-        return role + nxt + extra + init
-
-    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
-        n = next(iter(states.values())).shape[0]
-        with self.nu_network_params.to_module(self.nu_network):
-            out = self.nu_network(TensorDict(states, [n]))
-        return out.get(self.nu_network.out_keys[0]).reshape(n)
+        return self._role_in_keys(self.tensor_keys.regularization, self.tensor_keys.reward)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Compute ``loss_nu`` and write the weights into ``tensordict[regularization]``."""
         keys = self.tensor_keys
         data = get_role(tensordict, keys.regularization)
-        state_keys = self.nu_network.in_keys
-        batch_shape, init, current, following, terminated = dice_transitions(
-            tensordict,
-            role=keys.regularization,
-            init=keys.init,
-            state_keys=state_keys,
-            next_key=keys.next,
-            terminated_key=keys.terminated,
-            loss_name=type(self).__name__,
-        )
-        n, n0 = batch_shape.numel(), init[state_keys[0]].shape[0]
+        transitions = self._transitions(tensordict, keys.regularization)
+        batch_shape, init, current, following, terminated = transitions
+        n = batch_shape.numel()
 
-        nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
-        init_nu, nu, next_nu = nu_all.split([n0, n, n])
+        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
         reward = data.get(keys.reward).reshape(n).detach().to(nu.dtype)  # data of a frozen discriminator
         advantage = dice_advantage(reward, nu, bellman_backup(next_nu, terminated, self.gamma))
         loss_nu = demodice_dual(init_nu, advantage, self.alpha, self.gamma)

@@ -21,7 +21,8 @@ from spoil_torchrl.objectives.functional import (
     nu_gradient_penalty,
     self_normalized_weights,
 )
-from spoil_torchrl.objectives.keys import dice_transitions, get_role, role_key
+from spoil_torchrl.objectives.keys import get_role
+from spoil_torchrl.objectives.nu_values import StateValues
 
 #: Smallest argument of the reward's logarithm (the reference code's clip in its reward statistics).
 REWARD_LOG_FLOOR = 1e-10
@@ -114,7 +115,7 @@ def safedice_log_weight(advantage: torch.Tensor) -> torch.Tensor:
     return advantage - 1.0
 
 
-class SafeDICELoss(LossModule):
+class SafeDICELoss(StateValues, LossModule):
     r"""SafeDICE's dual objective over :math:`\nu` (Jang et al., 2023), with a frozen non-preferred discriminator.
 
     SafeDICE (`reference code <https://github.com/jys5609/SafeDICE>`_) imitates the preferred part of the
@@ -253,39 +254,18 @@ class SafeDICELoss(LossModule):
 
     @property
     def in_keys(self) -> list[NestedKey]:
-        keys = self.tensor_keys
-        state_keys = self.nu_network.in_keys
-        unl = [role_key(keys.unlabeled, k) for k in state_keys]
-        nxt = [role_key(keys.unlabeled, role_key(keys.next, k)) for k in state_keys]
-        extra = [role_key(keys.unlabeled, k) for k in (keys.terminated, keys.logit)]
-        init = [role_key(keys.init, k) for k in state_keys]
-        return unl + nxt + extra + init
-
-    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
-        n = next(iter(states.values())).shape[0]
-        with self.nu_network_params.to_module(self.nu_network):
-            out = self.nu_network(TensorDict(states, [n]))
-        return out.get(self.nu_network.out_keys[0]).reshape(n)
+        return self._role_in_keys(self.tensor_keys.unlabeled, self.tensor_keys.logit)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Compute ``loss_nu`` and write the weights into ``tensordict[unlabeled]``."""
         keys = self.tensor_keys
         unlabeled = get_role(tensordict, keys.unlabeled)
-        state_keys = self.nu_network.in_keys
-        batch_shape, init, current, following, terminated = dice_transitions(
-            tensordict,
-            role=keys.unlabeled,
-            init=keys.init,
-            state_keys=state_keys,
-            next_key=keys.next,
-            terminated_key=keys.terminated,
-            loss_name=type(self).__name__,
-        )
-        n, n0 = batch_shape.numel(), init[state_keys[0]].shape[0]
+        transitions = self._transitions(tensordict, keys.unlabeled)
+        batch_shape, init, current, following, terminated = transitions
+        n = batch_shape.numel()
 
-        nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
-        init_nu, nu, next_nu = nu_all.split([n0, n, n])
+        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
         probability = torch.sigmoid(unlabeled.get(keys.logit).reshape(n).detach().to(nu.dtype))
         reward = (safedice_reward(probability, self.alpha) - self.reward_mean) / self.reward_std
         advantage = dice_advantage(reward, nu, bellman_backup(next_nu, terminated, self.gamma))

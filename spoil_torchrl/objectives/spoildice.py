@@ -19,7 +19,8 @@ from spoil_torchrl.objectives.functional import (
     nu_gradient_penalty,
     self_normalized_weights,
 )
-from spoil_torchrl.objectives.keys import dice_transitions, get_role, role_key
+from spoil_torchrl.objectives.keys import get_role, role_key
+from spoil_torchrl.objectives.nu_values import StateValues
 
 
 def spoildice_advantage(
@@ -68,7 +69,7 @@ def spoildice_dual(
     return (1.0 - gamma) * init_nu.mean() + log_mean_exp(advantage) - lagrange
 
 
-class SpoilDICELoss(LossModule):
+class SpoilDICELoss(StateValues, LossModule):
     r"""SpoilDICE's dual objective over :math:`\nu` and the support multiplier :math:`\lambda`.
 
     From the `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_ (section 4,
@@ -202,19 +203,9 @@ class SpoilDICELoss(LossModule):
 
     @property
     def in_keys(self) -> list[NestedKey]:
-        keys = self.tensor_keys
-        state_keys = self.nu_network.in_keys
-        unl = [role_key(keys.unlabeled, k) for k in state_keys]
-        nxt = [role_key(keys.unlabeled, role_key(keys.next, k)) for k in state_keys]
-        extra = [role_key(keys.unlabeled, k) for k in (keys.terminated, keys.log_ratio, keys.support)]
-        init = [role_key(keys.init, k) for k in state_keys]
-        return unl + nxt + extra + init
-
-    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
-        n = next(iter(states.values())).shape[0]
-        with self.nu_network_params.to_module(self.nu_network):
-            out = self.nu_network(TensorDict(states, [n]))
-        return out.get(self.nu_network.out_keys[0]).reshape(n)
+        return self._role_in_keys(
+            self.tensor_keys.unlabeled, self.tensor_keys.log_ratio, self.tensor_keys.support
+        )
 
     def _penalty(self, init: dict, current: dict, following: dict) -> torch.Tensor:
         if self.gradient_penalty == 0:
@@ -226,20 +217,11 @@ class SpoilDICELoss(LossModule):
         """Compute ``loss_nu`` and ``loss_lambda`` and write the weights into ``tensordict[unlabeled]``."""
         keys = self.tensor_keys
         unlabeled = get_role(tensordict, keys.unlabeled)
-        state_keys = self.nu_network.in_keys
-        batch_shape, init, current, following, terminated = dice_transitions(
-            tensordict,
-            role=keys.unlabeled,
-            init=keys.init,
-            state_keys=state_keys,
-            next_key=keys.next,
-            terminated_key=keys.terminated,
-            loss_name=type(self).__name__,
-        )
-        n, n0 = batch_shape.numel(), init[state_keys[0]].shape[0]
+        transitions = self._transitions(tensordict, keys.unlabeled)
+        batch_shape, init, current, following, terminated = transitions
+        n = batch_shape.numel()
 
-        nu_all = self._nu({k: torch.cat([init[k], current[k], following[k]]) for k in state_keys})
-        init_nu, nu, next_nu = nu_all.split([n0, n, n])
+        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
         log_ratio = unlabeled.get(keys.log_ratio).reshape(n).to(nu.dtype)
         support = unlabeled.get(keys.support).reshape(n).to(nu.dtype)
         if not torch.compiler.is_compiling() and not bool(((support == 0) | (support == 1)).all()):

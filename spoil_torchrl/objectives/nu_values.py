@@ -1,0 +1,60 @@
+"""What every DICE LossModule does with its value network(s): read one role's transitions and the initial
+states, and evaluate a state network on all of them at once."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+
+from spoil_torchrl.objectives.keys import DICETransitions, dice_transitions, role_key
+
+
+class StateValues:
+    """Mixin for DICE LossModules with a functional ``nu_network`` (and optionally more state networks).
+
+    The host loss needs ``tensor_keys`` with ``init``, ``next`` and ``terminated`` entries and a network built by
+    ``convert_to_functional(network, "<name>")``.
+    """
+
+    def _values(self, name: str, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
+        """The functional network ``name`` (e.g. ``"nu_network"``) on a batch of states, shape ``[n]``."""
+        n = next(iter(states.values())).shape[0]
+        network = getattr(self, name)
+        with getattr(self, f"{name}_params").to_module(network):
+            out = network(TensorDict(states, [n]))
+        return out.get(network.out_keys[0]).reshape(n)
+
+    def _nu(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
+        return self._values("nu_network", states)
+
+    def _role_in_keys(self, role: NestedKey, *entries: NestedKey) -> list[NestedKey]:
+        """``in_keys`` of a dual over ``role``: its states, next states, ``terminated`` and ``entries``, and the
+        initial states."""
+        keys = self.tensor_keys
+        state_keys = self.nu_network.in_keys
+        current = [role_key(role, k) for k in state_keys]
+        following = [role_key(role, role_key(keys.next, k)) for k in state_keys]
+        extra = [role_key(role, k) for k in (keys.terminated, *entries)]
+        return current + following + extra + [role_key(keys.init, k) for k in state_keys]
+
+    def _transitions(self, tensordict: TensorDictBase, role: NestedKey) -> DICETransitions:
+        keys = self.tensor_keys
+        return dice_transitions(
+            tensordict,
+            role=role,
+            init=keys.init,
+            state_keys=self.nu_network.in_keys,
+            next_key=keys.next,
+            terminated_key=keys.terminated,
+            loss_name=type(self).__name__,
+        )
+
+    def _on_transitions(
+        self, name: str, t: DICETransitions
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The network ``name`` at the initial states, at s and at s' (one forward pass)."""
+        n, n0 = t.batch_shape.numel(), next(iter(t.init.values())).shape[0]
+        states = {k: torch.cat([t.init[k], t.current[k], t.following[k]]) for k in t.init}
+        init_v, v, next_v = self._values(name, states).split([n0, n, n])
+        return init_v, v, next_v
