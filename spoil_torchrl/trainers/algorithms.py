@@ -82,6 +82,32 @@ def _adam(params, lr: float) -> torch.optim.Adam:
     return torch.optim.Adam(list(params), lr=float(lr))
 
 
+def _weighted_bc(
+    cfg: Mapping[str, Any], obs_dim: int, act_dim: int, role: str, weight: str | None, diagnostics: dict
+) -> PolicyTraining:
+    """A main stage of weighted BC alone (Eq. 20 on ``role`` with ``weight``): BC, FBC, JFBC."""
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=role, weight=weight)
+    stepper = MultiLossStepper({"actor": policy_loss}, [_adam(policy_loss.parameters(), cfg["actor_lr"])])
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
+def _dice_with_extraction(
+    cfg: Mapping[str, Any],
+    dice: LossModule,
+    dual_optimizers: list[torch.optim.Optimizer],
+    obs_dim: int,
+    act_dim: int,
+    role: str,
+    diagnostics: dict,
+) -> PolicyTraining:
+    """A DICE main stage: ``dice`` writes ``dice_weight`` into ``role`` and pi is weighted BC on it (Eq. 20);
+    the dual's optimisers step first, then the actor's."""
+    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=role, weight="dice_weight")
+    optimizers = [*dual_optimizers, _adam(policy_loss.parameters(), cfg["actor_lr"])]
+    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
 def train_discriminators(
     cfg: Mapping[str, Any],
     buffers: DualDemoBuffers,
@@ -156,14 +182,11 @@ def build_spoildice(
         gradient_penalty=float(cfg["nu_gradient_penalty"]),
         init_lagrange=float(cfg["init_lagrange"]),
     )
-    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="dice_weight")
-    optimizers = [
+    dual = [
         _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
         _adam([dice.lagrange], cfg["lagrange_lr"]),
-        _adam(policy_loss.parameters(), cfg["actor_lr"]),
     ]
-    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
-    return PolicyTraining(stepper, policy_loss, diagnostics)
+    return _dice_with_extraction(cfg, dice, dual, obs_dim, act_dim, "unlabeled", diagnostics)
 
 
 def build_bc(
@@ -177,9 +200,7 @@ def build_bc(
     constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """BC: maximum likelihood on D_P (``cfg["role"]``, default ``"performant"``), no pre-training."""
-    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=cfg.get("role", "performant"))
-    stepper = MultiLossStepper({"actor": policy_loss}, [_adam(policy_loss.parameters(), cfg["actor_lr"])])
-    return PolicyTraining(stepper, policy_loss, {})
+    return _weighted_bc(cfg, obs_dim, act_dim, cfg.get("role", "performant"), None, {})
 
 
 def _fit_support(
@@ -208,9 +229,9 @@ def build_fbc(
     support = _fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
     buffers.annotate("performant", support)
     share = float(buffers["performant"].storage[:]["safe_support"].float().mean())
-    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="performant", weight="safe_support")
-    stepper = MultiLossStepper({"actor": policy_loss}, [_adam(policy_loss.parameters(), cfg["actor_lr"])])
-    return PolicyTraining(stepper, policy_loss, {"support_share_performant": share})
+    return _weighted_bc(
+        cfg, obs_dim, act_dim, "performant", "safe_support", {"support_share_performant": share}
+    )
 
 
 def build_jfbc(
@@ -243,9 +264,7 @@ def build_jfbc(
         "performant_share_unlabeled": float(unlabeled["performant_support"].float().mean()),
         "jfbc_share_unlabeled": float(unlabeled["jfbc_weight"].float().mean()),
     }
-    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="jfbc_weight")
-    stepper = MultiLossStepper({"actor": policy_loss}, [_adam(policy_loss.parameters(), cfg["actor_lr"])])
-    return PolicyTraining(stepper, policy_loss, diagnostics)
+    return _weighted_bc(cfg, obs_dim, act_dim, "unlabeled", "jfbc_weight", diagnostics)
 
 
 def _build_demodice(
@@ -285,13 +304,8 @@ def _build_demodice(
         regularization=regularization,
         reward=reward_key,
     )
-    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=regularization, weight="dice_weight")
-    optimizers = [
-        _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
-        _adam(policy_loss.parameters(), cfg["actor_lr"]),
-    ]
-    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
-    return PolicyTraining(stepper, policy_loss, diagnostics)
+    dual = [_adam(dice.nu_network_params.values(True, True), cfg["nu_lr"])]
+    return _dice_with_extraction(cfg, dice, dual, obs_dim, act_dim, regularization, diagnostics)
 
 
 def build_demodice_s(
@@ -365,14 +379,14 @@ def build_safedice(
     )
     alpha = safedice_auto_alpha(probability) if str(cfg["alpha"]) == "auto" else float(cfg["alpha"])
     reward = safedice_reward(probability, alpha)
+    mean, std = float(reward.mean()), float(reward.std(unbiased=False))  # NumPy's std, as the reference
     reward_mean, reward_std = 0.0, 1.0
     if bool(cfg.get("standardize_reward", False)):
-        std = float(reward.std(unbiased=False))  # NumPy's std, as the reference
-        reward_mean, reward_std = float(reward.mean()), (std if std > 0 else 1.0)
+        reward_mean, reward_std = mean, (std if std > 0 else 1.0)
     diagnostics = {
         "alpha": alpha,
-        "reward_mean": float(reward.mean()),
-        "reward_std": float(reward.std(unbiased=False)),
+        "reward_mean": mean,
+        "reward_std": std,
         "nonpreferred_probability_mean": float(probability.mean()),
     }
     dice = SafeDICELoss(
@@ -383,13 +397,8 @@ def build_safedice(
         reward_mean=reward_mean,
         reward_std=reward_std,
     )
-    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="dice_weight")
-    optimizers = [
-        _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
-        _adam(policy_loss.parameters(), cfg["actor_lr"]),
-    ]
-    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
-    return PolicyTraining(stepper, policy_loss, diagnostics)
+    dual = [_adam(dice.nu_network_params.values(True, True), cfg["nu_lr"])]
+    return _dice_with_extraction(cfg, dice, dual, obs_dim, act_dim, "unlabeled", diagnostics)
 
 
 def build_dwbc_s(
@@ -474,15 +483,12 @@ def build_coptidice(
         gradient_penalty=float(cfg["nu_gradient_penalty"]),
         init_lagrange=float(cfg["init_lagrange"]),
     )
-    policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role="unlabeled", weight="dice_weight")
-    optimizers = [
+    dual = [
         _adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
         _adam(dice.chi_network_params.values(True, True), cfg["nu_lr"]),
         _adam([dice.lagrange_param, dice.tau_param], cfg["lagrange_lr"]),
-        _adam(policy_loss.parameters(), cfg["actor_lr"]),
     ]
-    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
-    return PolicyTraining(stepper, policy_loss, diagnostics)
+    return _dice_with_extraction(cfg, dice, dual, obs_dim, act_dim, "unlabeled", diagnostics)
 
 
 ALGORITHMS: dict[str, Callable[..., PolicyTraining]] = {
