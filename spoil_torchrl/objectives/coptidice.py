@@ -16,7 +16,6 @@ from torchrl.objectives import LossModule
 
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
-    check_reduction,
     dice_advantage,
     effective_sample_size,
     log_mean_exp,
@@ -344,33 +343,26 @@ class COptiDICELoss(StateValues, LossModule):
         reduction: str | None = None,
     ) -> None:
         super().__init__()
-        if not 0.0 < gamma < 1.0:
-            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
+        self._setup_dual(nu_network, gamma=gamma, gradient_penalty=gradient_penalty, reduction=reduction)
         if not alpha > 0.0:  # also rejects NaN
             raise ValueError(f"alpha must be > 0, got {alpha}")
         if not (cost_limit >= 0.0 and math.isfinite(cost_limit)):
             raise ValueError(f"cost_limit must be a finite number >= 0, got {cost_limit}")
         if not cost_ub_epsilon >= 0.0:
             raise ValueError(f"cost_ub_epsilon must be >= 0, got {cost_ub_epsilon}")
-        if gradient_penalty < 0:
-            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
         for name, value in (("init_lagrange", init_lagrange), ("init_tau", init_tau)):
             if not (value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be a positive number, got {value}")
-        self.reduction = check_reduction(reduction, allowed=("mean",))
         if list(chi_network.in_keys) != list(nu_network.in_keys):
             raise ValueError(
                 f"chi reads {chi_network.in_keys} but nu reads {nu_network.in_keys}: use the same"
             )
-        self.convert_to_functional(nu_network, "nu_network")
         self.convert_to_functional(chi_network, "chi_network")
         self.lagrange_param = nn.Parameter(torch.tensor(_inverse_softplus(float(init_lagrange))))
         self.tau_param = nn.Parameter(torch.tensor(_inverse_softplus(float(init_tau))))
         self.cost_limit = float(cost_limit)
         self.alpha = float(alpha)
-        self.gamma = float(gamma)
         self.cost_ub_epsilon = float(cost_ub_epsilon)
-        self.gradient_penalty = float(gradient_penalty)
 
     @property
     def lagrange(self) -> torch.Tensor:

@@ -12,7 +12,6 @@ from torchrl.objectives import LossModule
 
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
-    check_reduction,
     dice_advantage,
     effective_sample_size,
     log_mean_exp,
@@ -185,17 +184,10 @@ class DemoDICELoss(StateValues, LossModule):
         reduction: str | None = None,
     ) -> None:
         super().__init__()
-        if not 0.0 < gamma < 1.0:
-            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
+        self._setup_dual(nu_network, gamma=gamma, gradient_penalty=gradient_penalty, reduction=reduction)
         if not alpha >= 0.0:  # also rejects NaN
             raise ValueError(f"alpha must be >= 0, got {alpha}")
-        if gradient_penalty < 0:
-            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
-        self.reduction = check_reduction(reduction, allowed=("mean",))
-        self.convert_to_functional(nu_network, "nu_network")
         self.alpha = float(alpha)
-        self.gamma = float(gamma)
-        self.gradient_penalty = float(gradient_penalty)
         keys = {"regularization": regularization, "reward": reward}
         self.set_keys(**{name: key for name, key in keys.items() if key is not None})
 

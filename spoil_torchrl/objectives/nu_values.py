@@ -7,15 +7,30 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
+from spoil_torchrl.objectives.functional import check_reduction
 from spoil_torchrl.objectives.keys import DICETransitions, dice_transitions, role_key
 
 
 class StateValues:
     """Mixin for DICE LossModules with a functional ``nu_network`` (and optionally more state networks).
 
-    The host loss needs ``tensor_keys`` with ``init``, ``next`` and ``terminated`` entries and a network built by
-    ``convert_to_functional(network, "<name>")``.
+    The host loss needs ``tensor_keys`` with ``init``, ``next`` and ``terminated`` entries, and calls
+    :meth:`_setup_dual` in its ``__init__`` (further networks via ``convert_to_functional(network, "<name>")``).
     """
+
+    def _setup_dual(
+        self, nu_network, *, gamma: float, gradient_penalty: float, reduction: str | None
+    ) -> None:
+        """Check and store what every DICE dual has: the discount, the nu gradient-penalty coefficient, the
+        reduction (only ``"mean"``: a batch-level objective) and the functional nu network."""
+        if not 0.0 < gamma < 1.0:
+            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
+        if gradient_penalty < 0:
+            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
+        self.reduction = check_reduction(reduction, allowed=("mean",))
+        self.convert_to_functional(nu_network, "nu_network")
+        self.gamma = float(gamma)
+        self.gradient_penalty = float(gradient_penalty)
 
     def _values(self, name: str, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
         """The functional network ``name`` (e.g. ``"nu_network"``) on a batch of states, shape ``[n]``."""

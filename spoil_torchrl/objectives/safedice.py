@@ -14,7 +14,6 @@ from torchrl.objectives import LossModule
 
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
-    check_reduction,
     dice_advantage,
     effective_sample_size,
     log_mean_exp,
@@ -233,19 +232,12 @@ class SafeDICELoss(StateValues, LossModule):
         reduction: str | None = None,
     ) -> None:
         super().__init__()
-        if not 0.0 < gamma < 1.0:
-            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
+        self._setup_dual(nu_network, gamma=gamma, gradient_penalty=gradient_penalty, reduction=reduction)
         if not 0.0 <= alpha < 1.0:
             raise ValueError(f"alpha must lie in [0, 1), got {alpha}")
-        if gradient_penalty < 0:
-            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
         if not (reward_std > 0 and math.isfinite(reward_std) and math.isfinite(reward_mean)):
             raise ValueError(f"reward_std must be a positive number, got {reward_std} (mean {reward_mean})")
-        self.reduction = check_reduction(reduction, allowed=("mean",))
-        self.convert_to_functional(nu_network, "nu_network")
         self.alpha = float(alpha)
-        self.gamma = float(gamma)
-        self.gradient_penalty = float(gradient_penalty)
         self.reward_mean = float(reward_mean)
         self.reward_std = float(reward_std)
 

@@ -13,7 +13,6 @@ from torchrl.objectives import LossModule
 
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
-    check_reduction,
     effective_sample_size,
     log_mean_exp,
     nu_gradient_penalty,
@@ -188,14 +187,7 @@ class SpoilDICELoss(StateValues, LossModule):
         reduction: str | None = None,
     ) -> None:
         super().__init__()
-        if not 0.0 < gamma < 1.0:
-            raise ValueError(f"gamma must lie in (0, 1), got {gamma}")
-        if gradient_penalty < 0:
-            raise ValueError(f"gradient_penalty must be >= 0, got {gradient_penalty}")
-        self.reduction = check_reduction(reduction, allowed=("mean",))
-        self.convert_to_functional(nu_network, "nu_network")
-        self.gamma = float(gamma)
-        self.gradient_penalty = float(gradient_penalty)
+        self._setup_dual(nu_network, gamma=gamma, gradient_penalty=gradient_penalty, reduction=reduction)
         self.lagrange = nn.Parameter(torch.tensor(float(init_lagrange)))
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
