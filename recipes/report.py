@@ -5,9 +5,11 @@
 Every ``results.json`` under the given folders with ``status == "finished"`` counts. Per dataset and algorithm,
 each seed contributes its aggregate (the mean of its last evaluations, as the paper does); the table gives the
 mean ± standard error over seeds of the normalised feasible return and the normalised cost, and marks safe
-results (mean normalised cost <= 1) in bold, as the paper's Table 1 / Table L. The plot puts normalised cost on
-x and normalised feasible return on y, one marker per algorithm with standard-error bars, the safe region
-(cost <= 1) shaded.
+results (mean normalised cost <= 1) in bold, as the paper's Table 1 / Table L. Algorithms are listed in the
+paper's order. A seed found twice, or runs of one dataset made with different training budgets (the ``train``
+section of the ``config.yaml`` beside each ``results.json``), stop the report with an error naming the runs.
+The plot puts normalised cost on x and normalised feasible return on y, one marker per algorithm with
+standard-error bars, the safe region (cost <= 1) shaded.
 """
 
 from __future__ import annotations
@@ -24,17 +26,60 @@ from spoil_torchrl.eval import mean_stderr
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
 
+#: The paper's column order (Table 1) and names; algorithms not listed follow, sorted.
+ALGORITHM_NAMES = {
+    "bc": "BC",
+    "fbc": "FBC",
+    "jfbc": "JFBC",
+    "demodice_s": "DemoDICE-S",
+    "demodice_u": "DemoDICE-U",
+    "dwbc_s": "DWBC-S",
+    "safedice": "SafeDICE",
+    "coptidice": "COptiDICE",
+    "spoildice": "SpoilDICE",
+}
+
+
+def _algo_order(algo: str) -> tuple[int, str]:
+    names = list(ALGORITHM_NAMES)
+    return (names.index(algo) if algo in names else len(names), algo)
+
+
+def _train_settings(results_path: Path) -> str | None:
+    """The ``train:`` section of the run's ``config.yaml`` (``None`` when the run folder has none)."""
+    config = results_path.parent / "config.yaml"
+    if not config.exists():
+        return None
+    from omegaconf import OmegaConf
+
+    train = OmegaConf.load(config).get("train")
+    return None if train is None else OmegaConf.to_yaml(train)
+
 
 def load_runs(folders: list[Path]) -> dict[tuple[str, str], list[dict]]:
     """``(dataset, algo) -> [results of each finished seed]``, sorted by seed."""
     runs: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    where: dict[tuple[str, str, int], Path] = {}
+    budgets: dict[str, dict[str | None, Path]] = defaultdict(dict)
     for folder in folders:
         if not folder.exists():
             raise FileNotFoundError(f"{folder}: no such folder")
         for path in sorted(folder.rglob("results.json")):
             results = json.loads(path.read_text())
-            if results.get("status") == "finished":
-                runs[(results["dataset"], results["algo"])].append(results)
+            if results.get("status") != "finished":
+                continue
+            key = (results["dataset"], results["algo"], results["seed"])
+            if key in where:
+                raise ValueError(f"seed {key[2]} of {key[1]} on {key[0]} twice: {where[key]} and {path}")
+            where[key] = path
+            budgets[results["dataset"]].setdefault(_train_settings(path), path)
+            runs[(results["dataset"], results["algo"])].append(results)
+    for dataset, settings in budgets.items():
+        if len(settings) > 1:
+            raise ValueError(
+                f"runs on {dataset} were made with different train settings, e.g. "
+                + " and ".join(map(str, settings.values()))
+            )
     for group in runs.values():
         group.sort(key=lambda r: r["seed"])
     return dict(runs)
@@ -44,7 +89,14 @@ def summarize(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, str], 
     """Per group: seeds and mean / standard error of each metric's per-seed aggregate."""
     out = {}
     for key, group in runs.items():
-        row = {"seeds": [r["seed"] for r in group], "minutes": sum(r["total_seconds"] for r in group) / 60}
+        row = {
+            "seeds": [r["seed"] for r in group],
+            "minutes": sum(r["total_seconds"] for r in group) / 60,
+            "per_seed": [
+                (r["aggregate"]["normalized_feasible_return"], r["aggregate"]["normalized_cost"])
+                for r in group
+            ],
+        }
         for metric in METRICS:
             row[metric] = mean_stderr(torch.tensor([r["aggregate"][metric] for r in group]))
         out[key] = row
@@ -63,16 +115,18 @@ def markdown(summary: dict[tuple[str, str], dict]) -> str:
         lines += [
             f"**{dataset}**",
             "",
-            "| algorithm | seeds | normalised feasible return | normalised cost | normalised return |",
-            "|---|---|---|---|---|",
+            "| algorithm | seeds | normalised feasible return | normalised cost | normalised return | "
+            "per seed (feasible return / cost) |",
+            "|---|---|---|---|---|---|",
         ]
-        for (d, algo), row in sorted(summary.items()):
-            if d != dataset:
-                continue
+        for algo in sorted((a for d, a in summary if d == dataset), key=_algo_order):
+            row = summary[(dataset, algo)]
             safe = row["normalized_cost"][0] <= 1.0
+            per_seed = ", ".join(f"{f:.2f} / {c:.2f}" for f, c in row["per_seed"])
             lines.append(
-                f"| {algo} | {len(row['seeds'])} | {_cell(*row['normalized_feasible_return'], bold=safe)} | "
-                f"{_cell(*row['normalized_cost'], bold=safe)} | {_cell(*row['normalized_return'])} |"
+                f"| {ALGORITHM_NAMES.get(algo, algo)} | {len(row['seeds'])} | "
+                f"{_cell(*row['normalized_feasible_return'], bold=safe)} | "
+                f"{_cell(*row['normalized_cost'], bold=safe)} | {_cell(*row['normalized_return'])} | {per_seed} |"
             )
         lines.append("")
     lines.append(
@@ -101,16 +155,18 @@ def plot(summary: dict[tuple[str, str], dict], path: Path) -> None:
             ),
         )
         ax.axvspan(0, 1, color="tab:green", alpha=0.12, label="safe (cost <= 1)")
-        for algo, row in sorted(rows.items()):
+        markers = "osD^v<>phX*"
+        for i, algo in enumerate(sorted(rows, key=_algo_order)):
+            row = rows[algo]
             (x, xe), (y, ye) = row["normalized_cost"], row["normalized_feasible_return"]
             ax.errorbar(
                 x,
                 y,
                 xerr=0 if math.isnan(xe) else xe,
                 yerr=0 if math.isnan(ye) else ye,
-                fmt="o",
+                fmt=markers[i % len(markers)],
                 capsize=3,
-                label=algo,
+                label=ALGORITHM_NAMES.get(algo, algo),
             )
         ax.set_xlim(0, x_max)
         y_values = [row["normalized_feasible_return"][0] for row in rows.values()]
@@ -131,7 +187,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="write the markdown table here (also printed)")
     parser.add_argument("--plot", type=Path, help="save the trade-off scatter PNG here")
     args = parser.parse_args()
-    runs = load_runs(args.folders)
+    try:
+        runs = load_runs(args.folders)
+    except (FileNotFoundError, ValueError) as error:
+        parser.error(str(error))
     if not runs:
         raise SystemExit(f"no finished results.json under {', '.join(map(str, args.folders))}")
     summary = summarize(runs)

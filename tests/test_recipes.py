@@ -177,9 +177,23 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     table = (tmp_path / "t.md").read_text()
-    assert "| spoildice | 2 | **0.60 ± 0.10** | **0.70 ± 0.20** |" in table  # safe on average: bold
-    assert "| bc | 1 | 0.30 | 4.00 |" in table  # one seed: no standard error, not safe
+    assert "| SpoilDICE | 2 | **0.60 ± 0.10** | **0.70 ± 0.20** |" in table  # safe on average: bold
+    assert "| 0.50 / 0.50, 0.70 / 0.90 |" in table  # per-seed values
+    assert "| BC | 1 | 0.30 | 4.00 |" in table  # one seed: no standard error, not safe
+    assert table.index("| BC |") < table.index("| SpoilDICE |")  # the paper's order
     assert (tmp_path / "t.png").stat().st_size > 1000
+
+    # a seed found twice is an error, not a silent third sample
+    run("a0-again", "spoildice", 0, 0.5, 0.5)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode != 0 and "seed 0 of spoildice on d twice" in proc.stderr
+    (tmp_path / "a0-again" / "results.json").unlink()
+
+    # runs of one dataset with different training budgets are not put in one table
+    (tmp_path / "a0" / "config.yaml").write_text("train:\n  steps: 10000\n")
+    (tmp_path / "b0" / "config.yaml").write_text("train:\n  steps: 500\n")
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode != 0 and "different train settings" in proc.stderr
 
 
 def test_collect_demos_recipe_reuses_a_cached_dataset(tmp_path, monkeypatch):
@@ -214,3 +228,31 @@ def test_collect_demos_recipe_reuses_a_cached_dataset(tmp_path, monkeypatch):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "| safe-high | 1 |" in proc.stdout
+
+
+def test_score_checkpoints_scores_zoo_policies(tmp_path):
+    zoo = ROOT / "spoil_torchrl" / "experts" / "zoo" / "SafetyPointCircle1-v0"
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "score_checkpoints.py"),
+        str(zoo / "safe-high.pt"),
+        str(zoo / "unsafe-high.pt"),
+        "--episodes",
+        "2",
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = {line.split("|")[1].strip(): line for line in proc.stdout.splitlines() if line.startswith("| ")}
+    assert set(rows) == {"checkpoint", "safe-high.pt", "unsafe-high.pt"}
+    # unsafe-high circles outside the boundary: every episode is over the limit; safe-high stays near it
+    assert rows["unsafe-high.pt"].rstrip().endswith("| 100 % |")
+    unsafe_cost = float(rows["unsafe-high.pt"].split("|")[5].split("±")[0])
+    safe_cost = float(rows["safe-high.pt"].split("|")[5].split("±")[0])
+    assert safe_cost < 25.0 < unsafe_cost
+
+
+def test_score_checkpoints_rejects_a_missing_path(tmp_path):
+    cmd = [sys.executable, str(ROOT / "recipes" / "score_checkpoints.py"), str(tmp_path / "nope")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode != 0
+    assert "no such file or folder" in proc.stderr
