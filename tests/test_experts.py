@@ -73,14 +73,23 @@ def test_tiny_ppo_run_writes_checkpoints(tmp_path, lagrangian):
 # --- committed policies ------------------------------------------------------------------------------------
 
 
-def test_zoo_policies_load_with_weights_only_and_check_the_task():
-    from spoil_torchrl.experts import PolicyFileError, load_policy, zoo_names, zoo_policy
+@pytest.mark.parametrize("env_id", ["SafetyPointCircle1-v0", "SafetyHalfCheetahVelocity-v1"])
+def test_zoo_has_the_four_policy_types(env_id):
+    from spoil_torchrl.experts import load_policy, zoo_names, zoo_policy
 
-    names = zoo_names("SafetyPointCircle1-v0")
+    names = zoo_names(env_id)
     assert {"safe-high", "safe-medium", "unsafe-high", "unsafe-medium"} <= set(names)
     for name in names:
-        raw = torch.load(zoo_policy("SafetyPointCircle1-v0", name), weights_only=True)
-        assert raw["env_id"] == "SafetyPointCircle1-v0" and raw["hidden_cells"] == [64, 64]
+        raw = torch.load(zoo_policy(env_id, name), weights_only=True)
+        assert raw["env_id"] == env_id and raw["hidden_cells"] == [64, 64]
+        _, meta = load_policy(zoo_policy(env_id, name), env_id=env_id)
+        expected = "PPO-Lagrangian" if name.startswith(("safe", "ppolag")) else "PPO"
+        assert meta["info"]["algorithm"] == expected, name
+
+
+def test_zoo_policies_load_with_weights_only_and_check_the_task():
+    from spoil_torchrl.experts import PolicyFileError, load_policy, zoo_policy
+
     actor, meta = load_policy(
         zoo_policy("SafetyPointCircle1-v0", "safe-high"), env_id="SafetyPointCircle1-v0"
     )

@@ -256,3 +256,20 @@ def test_score_checkpoints_rejects_a_missing_path(tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode != 0
     assert "no such file or folder" in proc.stderr
+
+
+def test_dataset_configs_select_their_evaluation_task():
+    from hydra import compose, initialize_config_dir
+
+    from spoil_torchrl.data import get_generated
+
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        for dataset, env_id in [
+            ("point_circle1_mixed", "SafetyPointCircle1-v0"),
+            ("point_circle1_controlled", "SafetyPointCircle1-v0"),
+            ("half_cheetah_velocity_controlled", "SafetyHalfCheetahVelocity-v1"),
+        ]:
+            cfg = compose(config_name="spoildice_dsrl", overrides=[f"dataset={dataset}"])
+            assert cfg.task.env_id == env_id, dataset
+            name = cfg.dataset.source.removeprefix("generated:")
+            assert get_generated(name).env_id == env_id, dataset

@@ -13,6 +13,8 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
 * ``point-circle1-controlled`` -- the four typed pools of the controlled datasets (F.2), 500 episodes each, so
   that D_U can hold 2,000 trajectories; pick D_S / D_P / D_U with
   :func:`~spoil_torchrl.data.controlled_mix` on :func:`~spoil_torchrl.data.collect.segment_pools`.
+* ``half-cheetah-velocity-controlled`` -- the same four pools for SafetyHalfCheetahVelocity-v1 (2,000 episodes
+  of 1,000 steps).
 """
 
 from __future__ import annotations
@@ -79,6 +81,12 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             "SafetyPointCircle1-v0",
             _typed(500),
             "controlled PointCircle1 pools: 500 episodes of each policy type (paper F.2)",
+        ),
+        GeneratedDataset(
+            "half-cheetah-velocity-controlled",
+            "SafetyHalfCheetahVelocity-v1",
+            _typed(500),
+            "controlled HalfCheetahVelocity pools: 500 episodes of each policy type (paper F.2)",
         ),
     ]
 }
