@@ -20,6 +20,12 @@ METADATA_ATTR = "spoil_torchrl_metadata"
 FLOAT_KEYS = ("observations", "next_observations", "actions", "rewards", "costs")
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _open(path: Path) -> h5py.File:
     if not path.exists():
         raise DatasetError(f"{path}: no such file")
@@ -116,6 +122,7 @@ def write_dsrl_file(
     fd, tmp_name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp_name)
+    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it owner-only; a dataset gets the usual permissions
     try:
         with h5py.File(tmp, "w") as f:
             for key in DSRL_KEYS:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import h5py
 import numpy as np
 import pytest
@@ -155,6 +157,16 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     with pytest.raises(TypeError):
         write_dsrl_file(tmp_path / "x.hdf5", arrays)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_written_file_has_the_usual_permissions(tmp_path):
+    # the unique temporary file is owner-only; the published dataset follows the umask like any new file
+    old = os.umask(0o022)
+    try:
+        write_dsrl_file(tmp_path / "x.hdf5", make_arrays())
+    finally:
+        os.umask(old)
+    assert (tmp_path / "x.hdf5").stat().st_mode & 0o777 == 0o644
 
 
 def test_task_table_has_the_38_datasets_and_table_c():
