@@ -1,6 +1,6 @@
 """Collect finished runs of ``recipes/spoildice_dsrl.py`` into a Table-1-style markdown table and a trade-off plot.
 
-    python recipes/report.py runs/final --out docs/results.md --plot docs/tradeoff.png
+    python recipes/report.py runs/final --out docs/results.md --plot docs/tradeoff.png --curves docs/curves.png
 
 Every ``results.json`` under the given folders with ``status == "finished"`` counts. Per dataset and algorithm,
 each seed contributes its aggregate (the mean of its last evaluations, as the paper does); the table gives the
@@ -9,7 +9,8 @@ results (mean normalised cost <= 1) in bold, as the paper's Table 1 / Table L. A
 paper's order. A seed found twice, or runs of one dataset made with different training budgets (the ``train``
 section of the ``config.yaml`` beside each ``results.json``), stop the report with an error naming the runs.
 The plot puts normalised cost on x and normalised feasible return on y, one marker per algorithm with
-standard-error bars, the safe region (cost <= 1) shaded.
+standard-error bars, the safe region (cost <= 1) shaded; the curves plot each metric against the training
+step (mean over seeds, standard error shaded).
 """
 
 from __future__ import annotations
@@ -181,11 +182,72 @@ def plot(summary: dict[tuple[str, str], dict], path: Path) -> None:
     plt.close(fig)
 
 
+def learning_curves(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, str], dict]:
+    """Per group: the evaluation steps shared by all its seeds and, per metric, the mean and standard error
+    over seeds at each of them."""
+    out = {}
+    for key, group in runs.items():
+        steps = sorted(set.intersection(*({e["step"] for e in r["evaluations"]} for r in group)))
+        curves = {"steps": steps}
+        for metric in METRICS[:2]:
+            by_step = [
+                mean_stderr(
+                    torch.tensor([next(e[metric] for e in r["evaluations"] if e["step"] == s) for r in group])
+                )
+                for s in steps
+            ]
+            curves[metric] = by_step
+        out[key] = curves
+    return out
+
+
+def plot_curves(runs: dict[tuple[str, str], list[dict]], path: Path) -> None:
+    """Normalised feasible return (top) and normalised cost (bottom) against the training step, one line per
+    algorithm (mean over seeds, standard error shaded), one column per dataset."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = learning_curves(runs)
+    datasets = sorted({d for d, _ in curves})
+    fig, axes = plt.subplots(2, len(datasets), figsize=(5 * len(datasets), 7), squeeze=False, sharex="col")
+    for col, dataset in enumerate(datasets):
+        for algo in sorted((a for d, a in curves if d == dataset), key=_algo_order):
+            c = curves[(dataset, algo)]
+            n = len(runs[(dataset, algo)])
+            for row, metric in enumerate(METRICS[:2]):
+                mean = [m for m, _ in c[metric]]
+                se = [0.0 if math.isnan(e) else e for _, e in c[metric]]
+                ax = axes[row][col]
+                (line,) = ax.plot(c["steps"], mean, label=f"{ALGORITHM_NAMES.get(algo, algo)} ({n})")
+                ax.fill_between(
+                    c["steps"],
+                    [m - e for m, e in zip(mean, se, strict=True)],
+                    [m + e for m, e in zip(mean, se, strict=True)],
+                    color=line.get_color(),
+                    alpha=0.2,
+                )
+        axes[0][col].set_title(dataset)
+        axes[0][col].set_ylabel("normalised feasible return")
+        axes[1][col].set_ylabel("normalised cost")
+        axes[1][col].axhline(1.0, color="tab:green", linestyle="--", linewidth=1, label="cost limit")
+        axes[1][col].set_xlabel("training step")
+        axes[1][col].legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("folders", nargs="+", type=Path, help="folders searched for results.json")
     parser.add_argument("--out", type=Path, help="write the markdown table here (also printed)")
     parser.add_argument("--plot", type=Path, help="save the trade-off scatter PNG here")
+    parser.add_argument(
+        "--curves", type=Path, help="save the learning curves (mean ± s.e. over seeds) PNG here"
+    )
     args = parser.parse_args()
     try:
         runs = load_runs(args.folders)
@@ -201,6 +263,8 @@ def main() -> None:
         args.out.write_text(text + "\n")
     if args.plot:
         plot(summary, args.plot)
+    if args.curves:
+        plot_curves(runs, args.curves)
 
 
 if __name__ == "__main__":

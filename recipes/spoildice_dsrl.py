@@ -33,9 +33,22 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import get_logger
 
-from spoil_torchrl.data import DualDemoBuffers
+from spoil_torchrl.data import (
+    DualDemoBuffers,
+    fit_observation_normalizer,
+    segment_pools,
+    standardize_observations,
+)
 from spoil_torchrl.data.prepare import prepare_dataset
 from spoil_torchrl.eval import Evaluator, RolloutWriter
+from spoil_torchrl.eval.dice_diagnostics import (
+    dice_diagnostics,
+    explain,
+    source_masks,
+    subsample,
+    summary_scalars,
+    support_accuracy,
+)
 from spoil_torchrl.eval.evaluator import METRICS
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.tasks import get_env_task
@@ -119,7 +132,14 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
             f"{cfg.dataset.source}: observation/action sizes {obs_dim}/{act_dim}, but {task.env_id} has "
             f"{task.observation_dim}/{task.action_dim}"
         )
-    buffers = DualDemoBuffers(data.episodes, data.roles, batch_size=int(train.batch_size), seed=int(cfg.seed))
+    # States standardised once with D_U's statistics: every network reads them, the saved policy carries them.
+    norm = (
+        fit_observation_normalizer(data.episodes, data.roles["unlabeled"])
+        if cfg.normalize_observations
+        else None
+    )
+    episodes = data.episodes if norm is None else standardize_observations(data.episodes, norm)
+    buffers = DualDemoBuffers(episodes, data.roles, batch_size=int(train.batch_size), seed=int(cfg.seed))
     evaluator = Evaluator(  # built (and its settings checked) before any training
         task.env_id,
         cost_threshold=data.cost_threshold,
@@ -142,7 +162,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     write_json(run_dir / "results.json", results)
 
     try:
-        return _train(cfg, run_dir, results, buffers, evaluator, logger, obs_dim, act_dim, start)
+        pools = segment_pools(data.metadata) if "segments" in data.metadata else None
+        return _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start)
     except BaseException as err:  # keep what was done, say why it stopped, re-raise
         results["status"] = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
         results["error"] = f"{type(err).__name__}: {err}"
@@ -150,8 +171,26 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
         raise
 
 
-def _train(cfg, run_dir, results, buffers, evaluator, logger, obs_dim, act_dim, start) -> dict:
+def diagnose(training, buffers, pools, seed: int) -> tuple[dict | None, dict | None]:
+    """The DICE diagnostics of the main stage's current (nu, lambda) on a fixed subsample of its role, and
+    the support estimate on D_P against the true cost (each ``None`` where the algorithm has none)."""
+    dice = None
+    if training.dice is not None:
+        transitions = subsample(buffers[training.dice_role].storage[:], seed=seed)
+        dice = dice_diagnostics(
+            training.dice, transitions, buffers["init"].storage[:], role=training.dice_role, pools=pools
+        )
+    performant = buffers["performant"].storage[:] if "performant" in buffers.roles else None
+    support = None
+    if performant is not None and "safe_support" in performant.keys():
+        groups = source_masks(performant["episode"], pools)
+        support = support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
+    return dice, support
+
+
+def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start) -> dict:
     task, train, config_hash = get_env_task(cfg.task.env_id), cfg.train, results["config_hash"]
+    obs_dim, act_dim = task.observation_dim, task.action_dim
 
     # Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U).
     # (the constraint, the dataset's episode-cost threshold over the task's horizon, is read by COptiDICE only)
@@ -164,6 +203,7 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, obs_dim, act_dim, 
         logger=logger,
         progress=cfg.progress,
     )
+    training.observation_norm = norm
     results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - start)
 
     # Optimise the main stage with the TorchRL Trainer; evaluate every eval_interval steps.
@@ -188,6 +228,15 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, obs_dim, act_dim, 
                 )
         if train.checkpoint:
             save_atomic({"step": step, **training.stepper.state_dict()}, checkpoints / "training_state.pt")
+        dice, support = diagnose(training, buffers, pools, int(cfg.seed))
+        if dice is not None:
+            result["dice"] = summary_scalars(dice)
+            results.update(dice_diagnostics=dice, dice_report=explain(dice, support))
+            if logger is not None:
+                for key, value in result["dice"].items():
+                    logger.log_scalar(key, value, step=step)
+        if support is not None:
+            results["performant_support"] = support
         result["seconds"] = time.perf_counter() - train_start
         results["evaluations"].append(result)
         write_json(run_dir / "results.json", results)
@@ -243,6 +292,8 @@ def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     results = run(cfg, run_dir)
     print(summary_table(results))
+    if "dice_report" in results:
+        print(f"\n{results['dice_report']}")
     print(f"\nrun directory: {run_dir}")
 
 

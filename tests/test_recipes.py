@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -93,15 +95,33 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     assert rollouts.episodes.shape[0] == 2 and rollouts.metadata["algo"] == "spoildice"
     _, meta = load_policy(tmp_path / "checkpoints" / "policy.pt", env_id="SafetyPointCircle1-v0")
     assert meta["distribution"] == "normal" and meta["info"]["step"] == 200
+    assert meta["observation_norm"] is True  # standardised by default, the statistics inside the policy file
     assert "train:" in (tmp_path / "config.yaml").read_text()
     assert list((tmp_path / "logs").rglob("dice.loss_nu.csv"))
+    # DICE diagnostics: at every evaluation (and logged), in full at the end, and as sentences
+    assert all("dice/share_bellman" in e["dice"] for e in results["evaluations"])
+    assert list((tmp_path / "logs").rglob("dice/weight_on_cost.csv"))
+    diag = results["dice_diagnostics"]
+    assert diag["role"] == "unlabeled" and sum(diag["variance_share"].values()) == pytest.approx(
+        1.0, abs=1e-4
+    )
+    assert 0.0 <= diag["weight_share"]["cost>0"]["weight"] <= 1.0
+    assert 0.0 <= results["performant_support"]["kept"] <= 1.0
+    assert "of the weight mass sits on transitions with true cost > 0" in results["dice_report"]
+    assert results["dice_report"] in proc.stdout
 
 
 def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
-    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=bc", "logger=none")
+    from spoil_torchrl.experts import load_policy
+
+    _, results = _dsrl_recipe(
+        tmp_path, tiny_pc1_dataset, "algo=bc", "logger=none", "normalize_observations=false"
+    )
     assert results["algo"] == "bc" and results["diagnostics"] == {} and results["status"] == "finished"
     assert [e["step"] for e in results["evaluations"]] == [100, 200]
-    assert (tmp_path / "checkpoints" / "policy.pt").is_file()
+    assert "dice_diagnostics" not in results and "dice" not in results["evaluations"][0]
+    _, meta = load_policy(tmp_path / "checkpoints" / "policy.pt")
+    assert meta["observation_norm"] is False
     assert not (tmp_path / "logs").exists()
 
 
@@ -152,6 +172,10 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
             "seed": seed,
             "status": status,
             "total_seconds": 60.0,
+            "evaluations": [
+                {"step": step, "normalized_feasible_return": feasible * f, "normalized_cost": cost * f}
+                for step, f in ((100, 0.5), (200, 1.0))
+            ],
             "aggregate": {
                 "normalized_feasible_return": feasible,
                 "normalized_cost": cost,
@@ -173,6 +197,8 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
         str(tmp_path / "t.md"),
         "--plot",
         str(tmp_path / "t.png"),
+        "--curves",
+        str(tmp_path / "c.png"),
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -182,6 +208,7 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
     assert "| BC | 1 | 0.30 | 4.00 |" in table  # one seed: no standard error, not safe
     assert table.index("| BC |") < table.index("| SpoilDICE |")  # the paper's order
     assert (tmp_path / "t.png").stat().st_size > 1000
+    assert (tmp_path / "c.png").stat().st_size > 1000
 
     # a seed found twice is an error, not a silent third sample
     run("a0-again", "spoildice", 0, 0.5, 0.5)
@@ -273,3 +300,27 @@ def test_dataset_configs_select_their_evaluation_task():
             assert cfg.task.env_id == env_id, dataset
             name = cfg.dataset.source.removeprefix("generated:")
             assert get_generated(name).env_id == env_id, dataset
+
+
+def test_report_learning_curves_average_seeds_at_shared_steps():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("report", ROOT / "recipes" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+
+    def seed(values, steps=(100, 200)):
+        return {
+            "evaluations": [
+                {"step": s, "normalized_feasible_return": v, "normalized_cost": 2 * v}
+                for s, v in zip(steps, values, strict=True)
+            ]
+        }
+
+    runs = {("d", "bc"): [seed([0.2, 0.4]), seed([0.4, 0.8]), seed([0.6, 1.0, 1.0], steps=(100, 200, 300))]}
+    curves = report.learning_curves(runs)[("d", "bc")]
+    assert curves["steps"] == [100, 200]  # 300 is not reached by every seed
+    (m100, se100), (m200, _) = curves["normalized_feasible_return"]
+    assert m100 == pytest.approx(0.4) and se100 == pytest.approx(0.2 / 3**0.5)
+    assert m200 == pytest.approx(2.2 / 3)
+    assert curves["normalized_cost"][0][0] == pytest.approx(0.8)

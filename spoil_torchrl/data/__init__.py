@@ -7,7 +7,9 @@ from spoil_torchrl.data.episodes import (
     DSRL_KEYS,
     DatasetError,
     episodes_from_arrays,
+    fit_observation_normalizer,
     select_episodes,
+    standardize_observations,
     validate_arrays,
 )
 from spoil_torchrl.data.generated import (
@@ -59,6 +61,7 @@ __all__ = [
     "episode_stats",
     "episodes_from_arrays",
     "fetch_dsrl",
+    "fit_observation_normalizer",
     "generated_data_dir",
     "ilsp_return_threshold",
     "label_ilsp",
@@ -69,6 +72,7 @@ __all__ = [
     "replay_subsets",
     "select_episodes",
     "sha256_of",
+    "standardize_observations",
     "stats_table",
     "validate_arrays",
     "write_dsrl_file",

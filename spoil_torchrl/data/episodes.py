@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from spoil_torchrl.modules.normalization import ObservationNormalizer
+
 #: The arrays of a DSRL HDF5 file (flat, episodes back to back).
 DSRL_KEYS = ("observations", "next_observations", "actions", "rewards", "costs", "terminals", "timeouts")
 
@@ -194,3 +196,34 @@ def select_episodes(episodes: TensorDict, ids) -> TensorDict:
     if ids.numel() and (ids.min() < 0 or ids.max() >= n_episodes):
         raise ValueError(f"episode ids must lie in [0, {n_episodes}), got {ids.tolist()[:10]}")
     return episodes[torch.isin(episodes["episode"], ids)]
+
+
+def fit_observation_normalizer(episodes: TensorDict, ids=None) -> ObservationNormalizer:
+    """Standardisation statistics (mean, std + 1e-3) of the observations of the episodes ``ids`` (all when
+    ``None``). The recipe fits them on D_U, the union data, as the DICE reference codes do.
+
+    Examples:
+        >>> td = TensorDict({"episode": torch.tensor([0, 0, 1]), "observation": torch.tensor([[0.0], [2.0], [9.0]])}, [3])
+        >>> fit_observation_normalizer(td, [0]).loc.tolist()
+        [1.0]
+    """
+    observations = episodes["observation"] if ids is None else select_episodes(episodes, ids)["observation"]
+    return ObservationNormalizer.from_observations(observations)
+
+
+def standardize_observations(episodes: TensorDict, normalizer: ObservationNormalizer) -> TensorDict:
+    """A copy of ``episodes`` whose ``observation`` and ``("next", "observation")`` are standardised by
+    ``normalizer`` (everything else shared, not copied); initial states come from ``observation``, so they are
+    standardised too.
+
+    Examples:
+        >>> td = TensorDict({"observation": torch.tensor([[3.0]]), "next": {"observation": torch.tensor([[5.0]])}}, [1])
+        >>> out = standardize_observations(td, ObservationNormalizer(torch.tensor([1.0]), torch.tensor([2.0])))
+        >>> out["observation"].item(), out["next", "observation"].item(), td["observation"].item()
+        (1.0, 2.0, 3.0)
+    """
+    out = episodes.copy()
+    with torch.no_grad():
+        for key in ("observation", ("next", "observation")):
+            out.set(key, normalizer(episodes.get(key).float()))
+    return out

@@ -3,8 +3,12 @@
 A policy file is a plain dict that ``torch.load(..., weights_only=True)`` accepts::
 
     {"format": 1, "env_id": "SafetyPointCircle1-v0", "hidden_cells": [64, 64],
-     "observation_dim": 28, "action_dim": 2, "distribution": "tanh_normal", "actor": <state_dict>,
-     "info": {...}}
+     "observation_dim": 28, "action_dim": 2, "distribution": "tanh_normal", "observation_norm": False,
+     "actor": <state_dict>, "info": {...}}
+
+With ``"observation_norm": True`` the actor standardises its raw observations itself: its state dict holds an
+:class:`~spoil_torchrl.modules.ObservationNormalizer`'s ``loc`` / ``scale`` in front of the MLP
+(:func:`~spoil_torchrl.modules.with_observation_norm`), and :func:`load_policy` rebuilds it so.
 
 :func:`load_policy` also reads the raw ``ckpt_<frames>.pt`` files that :func:`~spoil_torchrl.experts.train_ppo`
 writes (``{"actor": <state_dict>, "frames": ..., ...}``): the layer sizes are then read off the weights.
@@ -23,7 +27,12 @@ from pathlib import Path
 import torch
 from torchrl.modules import ProbabilisticActor
 
-from spoil_torchrl.modules import make_actor
+from spoil_torchrl.modules import (
+    ObservationNormalizer,
+    make_actor,
+    observation_normalizer_of,
+    with_observation_norm,
+)
 
 POLICY_FORMAT = 1
 ZOO_DIR = Path(__file__).parent / "zoo"
@@ -57,8 +66,8 @@ def save_policy(
     distribution: str = "tanh_normal",
     info: dict | None = None,
 ) -> Path:
-    """Write ``actor`` (built by :func:`~spoil_torchrl.modules.make_actor` with ``distribution``) as a policy
-    file (atomically).
+    """Write ``actor`` (built by :func:`~spoil_torchrl.modules.make_actor` with ``distribution``, possibly
+    wrapped by :func:`~spoil_torchrl.modules.with_observation_norm`) as a policy file (atomically).
 
     ``info`` is free JSON-like data kept with the weights (e.g. the training run and frame count).
 
@@ -84,6 +93,7 @@ def save_policy(
             "action_dim": act_dim,
             "hidden_cells": list(hidden),
             "distribution": distribution,
+            "observation_norm": observation_normalizer_of(actor) is not None,
             "actor": state,
             "info": dict(info or {}),
         },
@@ -102,7 +112,8 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
             one, and against the task's observation / action sizes always).
 
     Returns:
-        ``(actor, meta)`` with ``meta`` holding ``env_id`` (or ``None``), the sizes, ``hidden_cells`` and ``info``.
+        ``(actor, meta)`` with ``meta`` holding ``env_id`` (or ``None``), the sizes, ``hidden_cells``,
+        ``observation_norm`` (whether the actor standardises its raw observations itself) and ``info``.
 
     Raises:
         PolicyFileError: missing or unreadable file, or a policy for another task.
@@ -124,6 +135,7 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
         "action_dim": act_dim,
         "hidden_cells": list(hidden),
         "distribution": raw.get("distribution", "tanh_normal"),
+        "observation_norm": bool(raw.get("observation_norm", False)),
         "info": raw.get("info", {k: v for k, v in raw.items() if k != "actor"}),
     }
     if env_id is not None:
@@ -138,12 +150,19 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
                 f"{task.observation_dim}/{task.action_dim}"
             )
     actor = make_actor(obs_dim, act_dim, hidden_cells=hidden, distribution=meta["distribution"])
+    if meta["observation_norm"]:
+        actor = with_observation_norm(actor, ObservationNormalizer.identity(obs_dim))
     try:
         actor.load_state_dict(state)
     except RuntimeError as err:
         raise PolicyFileError(
             f"{path}: the weights do not fit a {meta['distribution']} actor ({err})"
         ) from err
+    norm = observation_normalizer_of(actor)
+    if norm is not None and not bool(
+        torch.isfinite(norm.loc).all() & torch.isfinite(norm.scale).all() & (norm.scale > 0).all()
+    ):
+        raise PolicyFileError(f"{path}: the observation statistics are not finite and positive")
     return actor.eval(), meta
 
 

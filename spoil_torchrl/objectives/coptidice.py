@@ -245,7 +245,8 @@ class COptiDICELoss(StateValues, LossModule):
         gamma (float): discount in (0, 1). Default 0.99 (Table J).
         cost_ub_epsilon (float): radius :math:`\epsilon \ge 0` of the KL ball of the cost upper bound; 0 uses the
             plain estimate. Default 0.01 (both references).
-        gradient_penalty (float): coefficient of the :math:`\nu` and :math:`\chi` gradient penalties. Default 10.
+        gradient_penalty (float): coefficient of the :math:`\nu` and :math:`\chi` gradient penalties. Default 1e-4
+            (on standardised states; see CONTRIBUTING.md).
         init_lagrange (float): initial :math:`\lambda > 0`. Default 1 (the official code's :math:`e^0`).
         init_tau (float): initial :math:`\tau > 0`. Default 1.
         reduction (str): only ``"mean"``: the terms couple the batch (log-sum-exp, initial and data roles).
@@ -289,6 +290,8 @@ class COptiDICELoss(StateValues, LossModule):
             cost (NestedKey): inside ``unlabeled``, the true cost. Defaults to ``("next", "cost")``.
             weight (NestedKey): inside ``unlabeled``, where the detached weights are written. Defaults to
                 ``"dice_weight"``.
+            advantage (NestedKey): inside ``unlabeled``, where the detached advantage (the exponent of the
+                weights) is written, for diagnostics. Defaults to ``"dice_advantage"``.
         """
 
         unlabeled: NestedKey = "unlabeled"
@@ -298,6 +301,7 @@ class COptiDICELoss(StateValues, LossModule):
         reward: NestedKey = ("next", "reward")
         cost: NestedKey = ("next", "cost")
         weight: NestedKey = "dice_weight"
+        advantage: NestedKey = "dice_advantage"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -337,7 +341,7 @@ class COptiDICELoss(StateValues, LossModule):
         alpha: float = 0.01,
         gamma: float = 0.99,
         cost_ub_epsilon: float = 0.01,
-        gradient_penalty: float = 10.0,
+        gradient_penalty: float = 1e-4,
         init_lagrange: float = 1.0,
         init_tau: float = 1.0,
         reduction: str | None = None,
@@ -430,6 +434,7 @@ class COptiDICELoss(StateValues, LossModule):
         with torch.no_grad():
             normalized = self_normalized_weights(coptidice_log_weight(advantage, self.alpha))
             data.set(keys.weight, normalized.reshape(*batch_shape, 1))
+            data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
             out = TensorDict(
                 {
                     "loss_nu": loss_nu,

@@ -66,11 +66,14 @@ class DemoDICELoss(StateValues, LossModule):
     The `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_ uses two variants
     (section 5, Table J: :math:`\alpha = 0.1`, :math:`\nu` gradient penalty 10):
 
-    * **DemoDICE-U** (``regularization="unlabeled"``, the original DemoDICE with :math:`D_U` as its union
-      data): :math:`r = \log \hat r_P = \log d_P/d_U`, the logit of :math:`C_P` (Eq. 18), written by
-      :class:`~spoil_torchrl.objectives.LogRatio` at ``"log_ratio_performant"`` (the default ``reward``). The
-      reference's reward is :math:`-\log(1/(\sigma(c)+10^{-3}) - 1 + 10^{-3})`, the same logit up to a clip of
-      about :math:`[-6.9, 13.8]`; we use the logit itself.
+    * **DemoDICE-U** (``regularization="unlabeled"``): the paper's DemoDICE-U regularises toward :math:`d_S`
+      like DemoDICE-S and differs only in sampling :math:`d_U`. With :math:`w = d/d_U`,
+      :math:`D_{KL}(d\|d_P) + \alpha D_{KL}(d\|d_S) = (1+\alpha) D_{KL}(d\|d_U) - E_d[\log r_P + \alpha \log r_S]`,
+      so it is this dual on :math:`D_U` with the reward :math:`r = \log \hat r_P + \alpha \log \hat r_S`
+      (logits of :math:`C_P` and :math:`C_S`, Eq. 18; the recipe writes it at ``"demodice_reward"``). With
+      :math:`r = \log \hat r_P` alone (the default ``reward``) it is the original DemoDICE with :math:`D_U` as
+      its union data. The reference's reward is :math:`-\log(1/(\sigma(c)+10^{-3}) - 1 + 10^{-3})`, the same
+      logit up to a clip of about :math:`[-6.9, 13.8]`; we use the logit itself.
     * **DemoDICE-S** (``regularization="safe"``): the same objective with :math:`d_R = d_S`, so
       :math:`r = \log d_P/d_S` on the safe transitions. The recipe obtains it, as the reference obtains its
       reward, from one discriminator: :math:`C_{PS}` trained on Eq. (16) with :math:`D_S` in place of
@@ -102,7 +105,8 @@ class DemoDICELoss(StateValues, LossModule):
         alpha (float): weight :math:`\alpha \ge 0` of the :math:`D_{KL}(d \| d_R)` regulariser. Default 0.1
             (Table J).
         gamma (float): discount in (0, 1). Default 0.99 (Table J).
-        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables. Default 10.
+        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables.
+            Default 1e-4 (on standardised states; see CONTRIBUTING.md).
         regularization (NestedKey, optional): the role :math:`d_R` (its transitions are the samples, its
             ``reward`` entry is :math:`\log d_P/d_R`). Default ``"unlabeled"`` (DemoDICE-U).
         reward (NestedKey, optional): inside the role, :math:`\log d_P/d_R`. Default ``"log_ratio_performant"``.
@@ -147,6 +151,8 @@ class DemoDICELoss(StateValues, LossModule):
                 ``"log_ratio_performant"``.
             weight (NestedKey): inside ``regularization``, where the detached weights are written. Defaults to
                 ``"dice_weight"``.
+            advantage (NestedKey): inside ``regularization``, where the detached advantage (the exponent of the
+                weights) is written, for diagnostics. Defaults to ``"dice_advantage"``.
         """
 
         regularization: NestedKey = "unlabeled"
@@ -155,6 +161,7 @@ class DemoDICELoss(StateValues, LossModule):
         terminated: NestedKey = ("next", "terminated")
         reward: NestedKey = "log_ratio_performant"
         weight: NestedKey = "dice_weight"
+        advantage: NestedKey = "dice_advantage"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -178,7 +185,7 @@ class DemoDICELoss(StateValues, LossModule):
         *,
         alpha: float = 0.1,
         gamma: float = 0.99,
-        gradient_penalty: float = 10.0,
+        gradient_penalty: float = 1e-4,
         regularization: NestedKey | None = None,
         reward: NestedKey | None = None,
         reduction: str | None = None,
@@ -219,6 +226,7 @@ class DemoDICELoss(StateValues, LossModule):
             log_w = demodice_log_weight(advantage, self.alpha)
             weights = self_normalized_weights(log_w)
             data.set(keys.weight, weights.reshape(*batch_shape, 1))
+            data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
             out = TensorDict(
                 {
                     "loss_nu": loss_nu,

@@ -152,7 +152,8 @@ class SafeDICELoss(StateValues, LossModule):
     Keyword Args:
         alpha (float): share of :math:`d_N` in :math:`d_U`, in [0, 1) (Table J: "auto", see above).
         gamma (float): discount in (0, 1). Default 0.99 (Table J).
-        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables. Default 10.
+        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables.
+            Default 1e-6 (on standardised states; see CONTRIBUTING.md).
         reward_mean (float): subtracted from the reward. Default 0.
         reward_std (float): the reward is divided by it (> 0). Default 1.
         reduction (str): only ``"mean"``: the log-sum-exp couples the samples of a batch.
@@ -193,6 +194,8 @@ class SafeDICELoss(StateValues, LossModule):
                 to ``"log_ratio_nonpreferred"``.
             weight (NestedKey): inside ``unlabeled``, where the detached weights are written. Defaults to
                 ``"dice_weight"``.
+            advantage (NestedKey): inside ``unlabeled``, where the detached advantage (the exponent of the
+                weights) is written, for diagnostics. Defaults to ``"dice_advantage"``.
         """
 
         unlabeled: NestedKey = "unlabeled"
@@ -201,6 +204,7 @@ class SafeDICELoss(StateValues, LossModule):
         terminated: NestedKey = ("next", "terminated")
         logit: NestedKey = "log_ratio_nonpreferred"
         weight: NestedKey = "dice_weight"
+        advantage: NestedKey = "dice_advantage"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -226,7 +230,7 @@ class SafeDICELoss(StateValues, LossModule):
         *,
         alpha: float,
         gamma: float = 0.99,
-        gradient_penalty: float = 10.0,
+        gradient_penalty: float = 1e-6,
         reward_mean: float = 0.0,
         reward_std: float = 1.0,
         reduction: str | None = None,
@@ -270,6 +274,7 @@ class SafeDICELoss(StateValues, LossModule):
             log_w = safedice_log_weight(advantage)
             weights = self_normalized_weights(log_w)
             unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
+            unlabeled.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
             out = TensorDict(
                 {
                     "loss_nu": loss_nu,

@@ -102,7 +102,8 @@ class SpoilDICELoss(StateValues, LossModule):
 
     Keyword Args:
         gamma (float): discount in (0, 1). Default 0.99 (Table J).
-        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables. Default 10.
+        gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables.
+            Default 1e-4 (on standardised states; see CONTRIBUTING.md).
         init_lagrange (float): initial :math:`\lambda`. Default 0.
         reduction (str): only ``"mean"``: the log-sum-exp couples the samples of a batch, so the objective has no
             per-sample form.
@@ -148,6 +149,8 @@ class SpoilDICELoss(StateValues, LossModule):
             support (NestedKey): inside ``unlabeled``, :math:`\\hat{\\mathbb 1}_S`. Defaults to ``"safe_support"``.
             weight (NestedKey): inside ``unlabeled``, where the detached weights are written. Defaults to
                 ``"dice_weight"``.
+            advantage (NestedKey): inside ``unlabeled``, where the detached advantage (the exponent of the
+                weights) is written, for diagnostics. Defaults to ``"dice_advantage"``.
         """
 
         unlabeled: NestedKey = "unlabeled"
@@ -157,6 +160,7 @@ class SpoilDICELoss(StateValues, LossModule):
         log_ratio: NestedKey = "log_ratio_performant"
         support: NestedKey = "safe_support"
         weight: NestedKey = "dice_weight"
+        advantage: NestedKey = "dice_advantage"
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -182,7 +186,7 @@ class SpoilDICELoss(StateValues, LossModule):
         nu_network: TensorDictModule,
         *,
         gamma: float = 0.99,
-        gradient_penalty: float = 10.0,
+        gradient_penalty: float = 1e-4,
         init_lagrange: float = 0.0,
         reduction: str | None = None,
     ) -> None:
@@ -234,6 +238,7 @@ class SpoilDICELoss(StateValues, LossModule):
             log_w = closed_form_log_weight(adv_nu)
             weights = self_normalized_weights(log_w)
             unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
+            unlabeled.set(keys.advantage, adv_nu.detach().reshape(*batch_shape, 1))
             out = TensorDict(
                 {
                     "loss_nu": loss_nu,

@@ -24,7 +24,13 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
 
 from spoil_torchrl.data.buffers import DualDemoBuffers
-from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
+from spoil_torchrl.modules import (
+    ObservationNormalizer,
+    make_actor,
+    make_discriminator,
+    make_value_network,
+    with_observation_norm,
+)
 from spoil_torchrl.objectives import (
     COptiDICELoss,
     DemoDICELoss,
@@ -58,18 +64,30 @@ class PolicyTraining:
         stepper: the optimisation step (losses in order, their optimisers and schedules).
         policy_loss: the loss holding the policy (``actor_network`` / ``actor_network_params``).
         diagnostics: extra numbers measured before the main stage (e.g. the support share of D_U).
+        dice: the DICE loss of the main stage, if any (it writes ``dice_weight`` / ``dice_advantage`` into
+            ``dice_role``'s transitions; :func:`~spoil_torchrl.eval.dice_diagnostics.dice_diagnostics` reads it).
+        dice_role: the role the DICE loss weights (D_U, or D_S for DemoDICE-S).
+        observation_norm: the statistics the training data were standardised with, if any.
     """
 
     stepper: MultiLossStepper
     policy_loss: LossModule
     diagnostics: dict[str, float]
+    dice: LossModule | None = None
+    dice_role: str | None = None
+    observation_norm: ObservationNormalizer | None = None
 
     @contextlib.contextmanager
     def policy(self) -> Iterator[ProbabilisticActor]:
-        """The current policy as a plain module (the loss's functional parameters put in place)."""
+        """The current policy as a plain module (the loss's functional parameters put in place). When the
+        training data were standardised (``observation_norm``), the policy standardises raw observations
+        itself, so it can act in the environment and be saved as one self-contained file."""
         loss = self.policy_loss
         with loss.actor_network_params.to_module(loss.actor_network):
-            yield loss.actor_network
+            if self.observation_norm is None:
+                yield loss.actor_network
+            else:
+                yield with_observation_norm(loss.actor_network, self.observation_norm)
 
 
 def _actor(cfg: Mapping[str, Any], obs_dim: int, act_dim: int) -> ProbabilisticActor:
@@ -105,7 +123,7 @@ def _dice_with_extraction(
     policy_loss = WeightedBCLoss(_actor(cfg, obs_dim, act_dim), role=role, weight="dice_weight")
     optimizers = [*dual_optimizers, _adam(policy_loss.parameters(), cfg["actor_lr"])]
     stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
-    return PolicyTraining(stepper, policy_loss, diagnostics)
+    return PolicyTraining(stepper, policy_loss, diagnostics, dice=dice, dice_role=role)
 
 
 def train_discriminators(
@@ -170,6 +188,7 @@ def build_spoildice(
     support = _fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
     buffers.annotate("unlabeled", ratio_p)
     buffers.annotate("unlabeled", support)
+    buffers.annotate("performant", support)  # read by the diagnostics only (the share of D_P kept)
     unlabeled = buffers["unlabeled"].storage[:]
     diagnostics = {
         "support_share_unlabeled": float(unlabeled["safe_support"].float().mean()),
@@ -267,45 +286,33 @@ def build_jfbc(
     return _weighted_bc(cfg, obs_dim, act_dim, "unlabeled", "jfbc_weight", diagnostics)
 
 
-def _build_demodice(
+def _demodice_stage(
     cfg: Mapping[str, Any],
     buffers: DualDemoBuffers,
     obs_dim: int,
     act_dim: int,
     *,
-    regularization: str,
-    logger=None,
-    progress: bool = True,
+    role: str,
+    reward_key: str,
+    diagnostics: dict,
 ) -> PolicyTraining:
-    """DemoDICE regularised toward ``regularization``'s data d_R: one discriminator of D_P against that role
-    (its logit is log d_P/d_R, Eq. 18 with d_R in place of d_U), annotated once on the role's storage as the
-    reward; main stage: nu by DemoDICE's dual and pi by weighted BC on the role (see :class:`DemoDICELoss`)."""
-    reward_key = (
-        "log_ratio_performant" if regularization == "unlabeled" else f"log_ratio_performant_{regularization}"
-    )
-    discriminators = train_discriminators(
-        cfg["discriminator"],
-        buffers,
-        obs_dim,
-        act_dim,
-        positives=("performant",),
-        against=regularization,
-        logger=logger,
-        progress=progress,
-    )
-    buffers.annotate(regularization, discriminators["performant"].log_ratio_module(reward_key))
-    reward = buffers[regularization].storage[:][reward_key].float()
-    diagnostics = {f"{reward_key}_mean": float(reward.mean()), f"{reward_key}_std": float(reward.std())}
+    """DemoDICE's main stage on ``role``'s samples with the annotated reward ``reward_key``: nu by DemoDICE's
+    dual and pi by weighted BC on the role (see :class:`DemoDICELoss`)."""
+    reward = buffers[role].storage[:][reward_key].float()
+    diagnostics = diagnostics | {
+        f"{reward_key}_mean": float(reward.mean()),
+        f"{reward_key}_std": float(reward.std()),
+    }
     dice = DemoDICELoss(
         make_value_network(obs_dim, hidden_cells=tuple(cfg["hidden_cells"])),
         alpha=float(cfg["alpha"]),
         gamma=float(cfg["gamma"]),
         gradient_penalty=float(cfg["nu_gradient_penalty"]),
-        regularization=regularization,
+        regularization=role,
         reward=reward_key,
     )
     dual = [_adam(dice.nu_network_params.values(True, True), cfg["nu_lr"])]
-    return _dice_with_extraction(cfg, dice, dual, obs_dim, act_dim, regularization, diagnostics)
+    return _dice_with_extraction(cfg, dice, dual, obs_dim, act_dim, role, diagnostics)
 
 
 def build_demodice_s(
@@ -321,8 +328,19 @@ def build_demodice_s(
     """DemoDICE-S (paper section 5): min KL(d||d_P) + alpha KL(d||d_S) with D_S as the samples. C_P is trained
     against D_S, so its logit is the reward log d_P/d_S; D_S is annotated with ``log_ratio_performant_safe``
     and the policy is weighted BC on D_S."""
-    return _build_demodice(
-        cfg, buffers, obs_dim, act_dim, regularization="safe", logger=logger, progress=progress
+    discriminators = train_discriminators(
+        cfg["discriminator"],
+        buffers,
+        obs_dim,
+        act_dim,
+        positives=("performant",),
+        against="safe",
+        logger=logger,
+        progress=progress,
+    )
+    buffers.annotate("safe", discriminators["performant"].log_ratio_module("log_ratio_performant_safe"))
+    return _demodice_stage(
+        cfg, buffers, obs_dim, act_dim, role="safe", reward_key="log_ratio_performant_safe", diagnostics={}
     )
 
 
@@ -336,11 +354,34 @@ def build_demodice_u(
     progress: bool = True,
     constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
-    """DemoDICE-U (paper section 5; the original DemoDICE with D_U as its union data): min KL(d||d_P) +
-    alpha KL(d||d_U); C_P against D_U (Eq. 16) gives the reward log r_P on D_U (``log_ratio_performant``) and
-    the policy is weighted BC on D_U."""
-    return _build_demodice(
-        cfg, buffers, obs_dim, act_dim, regularization="unlabeled", logger=logger, progress=progress
+    """DemoDICE-U (paper section 5: "variants of DemoDICE that regularize d toward d_S, differing in the choice
+    of importance sampling distribution"): DemoDICE-S's objective min KL(d||d_P) + alpha KL(d||d_S), with D_U
+    as the samples. With w = d/d_U it is DemoDICE's dual on D_U with the reward log r_P + alpha log r_S
+    (``demodice_reward``), from C_P and C_S trained against D_U (Eq. 16-18); the policy is weighted BC on D_U."""
+    discriminators = train_discriminators(
+        cfg["discriminator"], buffers, obs_dim, act_dim, logger=logger, progress=progress
+    )
+    buffers.annotate("unlabeled", discriminators["performant"].log_ratio_module("log_ratio_performant"))
+    buffers.annotate("unlabeled", discriminators["safe"].log_ratio_module("log_ratio_safe"))
+    alpha = float(cfg["alpha"])
+    buffers.annotate(
+        "unlabeled",
+        "demodice_reward",
+        lambda td: td["log_ratio_performant"] + alpha * td["log_ratio_safe"],
+    )
+    log_ratio_safe = buffers["unlabeled"].storage[:]["log_ratio_safe"].float()
+    diagnostics = {
+        "log_ratio_safe_mean": float(log_ratio_safe.mean()),
+        "log_ratio_safe_std": float(log_ratio_safe.std()),
+    }
+    return _demodice_stage(
+        cfg,
+        buffers,
+        obs_dim,
+        act_dim,
+        role="unlabeled",
+        reward_key="demodice_reward",
+        diagnostics=diagnostics,
     )
 
 

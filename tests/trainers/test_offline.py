@@ -203,9 +203,17 @@ def test_builders_train_demodice_s_and_u(tiny_pc1_dataset):
     )
     assert discs["performant"].tensor_keys.unlabeled == "safe"
 
-    demo_u = ALGORITHMS["demodice_u"](cfg, buffers, 28, 2, progress=False)
-    assert "log_ratio_performant" in buffers["unlabeled"].storage[:].keys()
+    with pytest.raises(ValueError, match="no coefficient for \\['safe'\\]"):
+        ALGORITHMS["demodice_u"](cfg, buffers, 28, 2, progress=False)  # DemoDICE-U also trains C_S
+    cfg_u = _dice_baseline_cfg({"performant": 10.0, "safe": 0.0})
+    demo_u = ALGORITHMS["demodice_u"](cfg_u, buffers, 28, 2, progress=False)
+    unlabeled = buffers["unlabeled"].storage[:]
+    # DemoDICE-U regularises toward d_S like DemoDICE-S, sampling D_U: reward log r_P + alpha log r_S
+    torch.testing.assert_close(
+        unlabeled["demodice_reward"], unlabeled["log_ratio_performant"] + 0.1 * unlabeled["log_ratio_safe"]
+    )
     assert demo_u.stepper.losses["dice"].tensor_keys.regularization == "unlabeled"
+    assert demo_u.stepper.losses["dice"].tensor_keys.reward == "demodice_reward"
     assert demo_u.policy_loss.tensor_keys.role == "unlabeled"
     out = demo_u.stepper.step(None, buffers.sample())
     assert torch.isfinite(out["dice.loss_nu"]) and torch.isfinite(out["actor.loss_actor"])
