@@ -100,6 +100,12 @@ def summarize(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, str], 
         }
         for metric in METRICS:
             row[metric] = mean_stderr(torch.tensor([r["aggregate"][metric] for r in group]))
+        diagnostics = [r["dice_diagnostics"] for r in group if r.get("dice_diagnostics")]
+        if len(diagnostics) == len(group):  # DICE methods: nu's share and the weight on cost > 0, final
+            row["bellman_share"] = sum(d["variance_share"]["bellman"] for d in diagnostics) / len(group)
+            row["weight_on_cost"] = sum(d["weight_share"]["cost>0"]["weight"] for d in diagnostics) / len(
+                group
+            )
         out[key] = row
     return out
 
@@ -117,8 +123,8 @@ def markdown(summary: dict[tuple[str, str], dict]) -> str:
             f"**{dataset}**",
             "",
             "| algorithm | seeds | normalised feasible return | normalised cost | normalised return | "
-            "per seed (feasible return / cost) |",
-            "|---|---|---|---|---|---|",
+            "per seed (feasible return / cost) | nu's share / weight on cost > 0 |",
+            "|---|---|---|---|---|---|---|",
         ]
         for algo in sorted((a for d, a in summary if d == dataset), key=_algo_order):
             row = summary[(dataset, algo)]
@@ -127,12 +133,19 @@ def markdown(summary: dict[tuple[str, str], dict]) -> str:
             lines.append(
                 f"| {ALGORITHM_NAMES.get(algo, algo)} | {len(row['seeds'])} | "
                 f"{_cell(*row['normalized_feasible_return'], bold=safe)} | "
-                f"{_cell(*row['normalized_cost'], bold=safe)} | {_cell(*row['normalized_return'])} | {per_seed} |"
+                f"{_cell(*row['normalized_cost'], bold=safe)} | {_cell(*row['normalized_return'])} | {per_seed} | "
+                + (
+                    f"{100 * row['bellman_share']:.0f} % / {100 * row['weight_on_cost']:.0f} % |"
+                    if "bellman_share" in row
+                    else "- |"
+                )
             )
         lines.append("")
     lines.append(
         "Bold: safe on average (normalised cost <= 1). Each seed contributes the mean of its last "
-        "evaluations (results.json `aggregate`); ± is the standard error over seeds."
+        "evaluations (results.json `aggregate`); ± is the standard error over seeds. Last column (DICE methods, "
+        "mean over seeds at the final evaluation): the share of the advantage's variance carried by nu's "
+        "Bellman term, and the share of the policy-extraction weight on transitions with true cost > 0."
     )
     return "\n".join(lines)
 

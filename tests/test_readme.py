@@ -19,3 +19,7 @@ def test_readme_loop_example_runs(capsys):
     assert trainer, "the README lost its Trainer example"
     exec(compile(trainer[0], "README.md", "exec"), namespace)
     assert "steps done: 20" in capsys.readouterr().out
+    diagnostics = [b for b in blocks if "dice_diagnostics(" in b]
+    assert diagnostics, "the README lost its diagnostics example"
+    exec(compile(diagnostics[0], "README.md", "exec"), namespace)
+    assert "of the weight mass sits on transitions with true cost > 0" in capsys.readouterr().out

@@ -166,7 +166,9 @@ def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dat
 
 def test_report_tables_and_plots_finished_runs(tmp_path):
     def run(folder, algo, seed, feasible, cost, status="finished"):
+        diagnostics = {"variance_share": {"bellman": 0.1 * seed}, "weight_share": {"cost>0": {"weight": 0.2}}}
         results = {
+            "dice_diagnostics": diagnostics if algo == "spoildice" else None,
             "algo": algo,
             "dataset": "d",
             "seed": seed,
@@ -204,7 +206,8 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     table = (tmp_path / "t.md").read_text()
     assert "| SpoilDICE | 2 | **0.60 ± 0.10** | **0.70 ± 0.20** |" in table  # safe on average: bold
-    assert "| 0.50 / 0.50, 0.70 / 0.90 |" in table  # per-seed values
+    assert "| 0.50 / 0.50, 0.70 / 0.90 | 5 % / 20 % |" in table  # per-seed values, diagnostics
+    assert "| BC | 1 | 0.30 | 4.00 | 1.00 | 0.30 / 4.00 | - |" in table  # no DICE diagnostics
     assert "| BC | 1 | 0.30 | 4.00 |" in table  # one seed: no standard error, not safe
     assert table.index("| BC |") < table.index("| SpoilDICE |")  # the paper's order
     assert (tmp_path / "t.png").stat().st_size > 1000
