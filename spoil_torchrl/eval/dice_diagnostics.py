@@ -251,11 +251,12 @@ def explain(diag: Mapping, performant_support: Mapping | None = None) -> str:
             "nu is nearly flat: the weights are those of weighted BC on the reward term, with no look-ahead."
         )
     costly = weight["cost>0"]
-    verdict = (
-        "the weights favour costly transitions"
-        if costly["weight"] > costly["transitions"]
-        else "the weights move mass away from costly transitions"
-    )
+    if abs(costly["weight"] - costly["transitions"]) < 0.01:
+        verdict = "the weights neither favour nor avoid costly transitions"
+    elif costly["weight"] > costly["transitions"]:
+        verdict = "the weights favour costly transitions"
+    else:
+        verdict = "the weights move mass away from costly transitions"
     lines.append(
         f"{_pct(costly['weight'])} of the weight mass sits on transitions with true cost > 0 (they are "
         f"{_pct(costly['transitions'])} of {diag['role']}): {verdict}."

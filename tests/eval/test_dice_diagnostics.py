@@ -138,6 +138,8 @@ def test_explain_flags_a_flat_nu_and_explain_run_reads_results(tmp_path):
     }
     text = explain(diag)
     assert "nearly flat" in text and "favour costly" in text and "unsafe-high 31 %" in text
+    even = {**diag, "weight_share": {"cost>0": {"weight": 0.2, "transitions": 0.205}}}
+    assert "neither favour nor avoid" in explain(even)
     (tmp_path / "results.json").write_text(json.dumps({"algo": "spoildice", "dice_diagnostics": diag}))
     assert explain_run(tmp_path) == text
     (tmp_path / "results.json").write_text(json.dumps({"algo": "bc"}))
