@@ -32,6 +32,8 @@ from spoil_torchrl.objectives.functional import bellman_backup
 
 #: Transitions of the DICE role the diagnostics are computed on (a fixed, seeded subsample).
 DEFAULT_SAMPLE = 10_000
+#: A Bellman term whose standard deviation is below this (in nats) moves the weights by less than ~10 %.
+FLAT_SPREAD = 0.1
 
 
 def _std(x: torch.Tensor) -> float:
@@ -173,6 +175,7 @@ def dice_diagnostics(
     bellman = (bellman_backup(next_nu, terminated, loss.gamma) - nu).double()
 
     terms = {"bellman": bellman}
+    in_support = None
     spread = {"nu": _std(nu), "bellman": _std(bellman), "advantage": _std(advantage)}
     if "log_ratio_performant" in data.keys() and "safe_support" in data.keys() and hasattr(loss, "lagrange"):
         log_ratio = data.get("log_ratio_performant").reshape(-1).double()
@@ -180,6 +183,9 @@ def dice_diagnostics(
         terms.update(log_ratio_performant=log_ratio, lagrange_support=lam_support)
         spread.update(log_ratio_performant=_std(log_ratio), lagrange_support=_std(lam_support))
         terms["rest"] = advantage - bellman - log_ratio - lam_support  # ~0 for SpoilDICE (Eq. 7)
+        inside = data.get("safe_support").reshape(-1) > 0.5  # where the weights have their mass
+        if int(inside.sum()) > 1:
+            in_support = {k: v[inside] for k, v in terms.items() if k != "lagrange_support"}
     else:
         terms["reward"] = advantage - bellman
         spread["reward"] = _std(terms["reward"])
@@ -192,6 +198,10 @@ def dice_diagnostics(
         "transitions": int(data.shape[0]),
         "spread": spread,
         "variance_share": variance_shares(advantage, terms),
+        # SpoilDICE: the same inside the estimated support, where lambda * 1_S is constant
+        "variance_share_in_support": None
+        if in_support is None
+        else variance_shares(advantage[inside], in_support),
         "weight_share": weight_shares(weights, groups),
         "effective_sample_size": float(weights.sum() ** 2 / weights.pow(2).sum() / weights.numel()),
     }
@@ -214,6 +224,8 @@ def summary_scalars(diag: Mapping) -> dict[str, float]:
     """
     out = {f"dice/spread_{k}": float(v) for k, v in diag["spread"].items()}
     out.update({f"dice/share_{k}": float(v) for k, v in diag["variance_share"].items()})
+    if diag.get("variance_share_in_support"):
+        out["dice/share_bellman_in_support"] = float(diag["variance_share_in_support"]["bellman"])
     out["dice/weight_on_cost"] = float(diag["weight_share"]["cost>0"]["weight"])
     return out
 
@@ -232,7 +244,8 @@ def explain(diag: Mapping, performant_support: Mapping | None = None) -> str:
         ... # doctest: +NORMALIZE_WHITESPACE
         nu's Bellman term gamma*nu(s') - nu(s) explains 2 % of the variance of the advantage (reward 98 %);
         its spread on unlabeled is 0.06 against 1 for the whole advantage.
-        nu is nearly flat: the weights are those of weighted BC on the reward term, with no look-ahead.
+        nu is nearly flat (its term moves the weights by less than about 10 %): the weights are those of
+        weighted BC on the reward term, with no look-ahead.
         30 % of the weight mass sits on transitions with true cost > 0 (they are 20 % of unlabeled):
         the weights favour costly transitions.
         The effective sample size of the weights is 50 % of the transitions.
@@ -246,9 +259,16 @@ def explain(diag: Mapping, performant_support: Mapping | None = None) -> str:
         f"advantage ({others}); its spread on {diag['role']} is {spread['bellman']:.2g} against "
         f"{spread['advantage']:.2g} for the whole advantage."
     ]
-    if share["bellman"] < 0.05:
+    inside = diag.get("variance_share_in_support")
+    if inside:
         lines.append(
-            "nu is nearly flat: the weights are those of weighted BC on the reward term, with no look-ahead."
+            f"Inside the estimated support (where lambda * 1_S is constant) nu's term explains "
+            f"{_pct(inside['bellman'])} of it and log r_P {_pct(inside['log_ratio_performant'])}."
+        )
+    if spread["bellman"] < FLAT_SPREAD:
+        lines.append(
+            "nu is nearly flat (its term moves the weights by less than about 10 %): the weights are those of "
+            "weighted BC on the reward term, with no look-ahead."
         )
     costly = weight["cost>0"]
     if abs(costly["weight"] - costly["transitions"]) < 0.01:

@@ -96,6 +96,11 @@ def test_spoildice_diagnostics_on_a_hand_set_nu():
         expected = float(((term - term.mean()) * (advantage - advantage.mean())).mean() / var)
         assert diag["variance_share"][name] == pytest.approx(expected, abs=1e-6)
     assert diag["variance_share"]["rest"] == pytest.approx(0.0, abs=1e-6)
+    inside = batch["safe_support"].reshape(-1) > 0  # inside the support lambda * 1_S is constant
+    a_in, b_in = advantage[inside], bellman[inside]
+    expected_in = float(((b_in - b_in.mean()) * (a_in - a_in.mean())).mean() / a_in.var(unbiased=False))
+    assert diag["variance_share_in_support"]["bellman"] == pytest.approx(expected_in, abs=1e-6)
+    assert sum(diag["variance_share_in_support"].values()) == pytest.approx(1.0, abs=1e-6)
     w = torch.exp(advantage - 1)
     w = w / w.sum()
     assert diag["weight_share"]["a"]["weight"] == pytest.approx(float(w[:4].sum()), rel=1e-5)
@@ -109,6 +114,7 @@ def test_spoildice_diagnostics_on_a_hand_set_nu():
     assert scalars["dice/weight_on_cost"] == diag["weight_share"]["cost>0"]["weight"]
     text = explain(diag, {"kept": 0.4})
     assert "It keeps 40 % of D_P" in text and "sits on transitions with true cost > 0" in text
+    assert "Inside the estimated support" in text and "nearly flat" not in text  # bellman spread 0.5
 
 
 def test_diagnostics_of_a_dice_baseline_split_reward_and_bellman():
