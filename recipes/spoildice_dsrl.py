@@ -7,13 +7,16 @@
 
 Reads like Algorithm 1 of the paper:
 
-1. Input: D_S, D_P, D_U and the initial states, in one TorchRL replay buffer each (``DualDemoBuffers``).
+1. Input: D_S, D_P, D_U and the initial states, in one TorchRL replay buffer each (``DualDemoBuffers``),
+   states standardised with D_U's mean and standard deviation (``normalize_observations``).
 2. Pre-train C_P and C_S, fit the support cut, annotate D_U once (inside the algorithm's builder,
    ``spoil_torchrl.trainers.algorithms``).
 3. Optimise (nu, lambda) and pi with ``torchrl.trainers.Trainer``, evaluating every ``train.eval_interval``
    steps in the real environment.
 4. Output: the run directory holds ``config.yaml`` (resolved), ``logs/`` (TorchRL logger), ``checkpoints/``,
-   ``results.json`` (every evaluation, raw and normalised, and the paper's aggregate) and ``rollouts.mcap``
+   ``results.json`` (every evaluation, raw and normalised, and the paper's aggregate; for DICE methods the
+   diagnostics of ``spoil_torchrl.eval.dice_diagnostics`` at every evaluation and a text report at the end)
+   and ``rollouts.mcap``
    (every evaluation episode; ``python -m spoil_torchrl.inspect <file>``). ``results.json`` is rewritten after
    every evaluation and the MCAP file is flushed after every episode, so an interrupted run keeps both.
 """
@@ -171,21 +174,15 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
         raise
 
 
-def diagnose(training, buffers, pools, seed: int) -> tuple[dict | None, dict | None]:
-    """The DICE diagnostics of the main stage's current (nu, lambda) on a fixed subsample of its role, and
-    the support estimate on D_P against the true cost (each ``None`` where the algorithm has none)."""
-    dice = None
-    if training.dice is not None:
-        transitions = subsample(buffers[training.dice_role].storage[:], seed=seed)
-        dice = dice_diagnostics(
-            training.dice, transitions, buffers["init"].storage[:], role=training.dice_role, pools=pools
-        )
-    performant = buffers["performant"].storage[:] if "performant" in buffers.roles else None
-    support = None
-    if performant is not None and "safe_support" in performant.keys():
-        groups = source_masks(performant["episode"], pools)
-        support = support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
-    return dice, support
+def performant_support(buffers, pools) -> dict | None:
+    """The support estimate on D_P against the true cost (``None`` where the algorithm annotated none)."""
+    if "performant" not in buffers.roles:
+        return None
+    performant = buffers["performant"].storage[:]
+    if "safe_support" not in performant.keys():
+        return None
+    groups = source_masks(performant["episode"], pools)
+    return support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
 
 
 def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start) -> dict:
@@ -205,6 +202,14 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
     )
     training.observation_norm = norm
     results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - start)
+    # Diagnostics (never read by training): D_P's support estimate once, and a fixed subsample of the DICE
+    # role on which (nu, lambda) are examined at every evaluation.
+    support = performant_support(buffers, pools)
+    if support is not None:
+        results["performant_support"] = support
+    if training.dice is not None:
+        probe = subsample(buffers[training.dice_role].storage[:], seed=int(cfg.seed))
+        probe_init = buffers["init"].storage[:]
 
     # Optimise the main stage with the TorchRL Trainer; evaluate every eval_interval steps.
     checkpoints = run_dir / "checkpoints"
@@ -228,15 +233,13 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
                 )
         if train.checkpoint:
             save_atomic({"step": step, **training.stepper.state_dict()}, checkpoints / "training_state.pt")
-        dice, support = diagnose(training, buffers, pools, int(cfg.seed))
-        if dice is not None:
+        if training.dice is not None:
+            dice = dice_diagnostics(training.dice, probe, probe_init, role=training.dice_role, pools=pools)
             result["dice"] = summary_scalars(dice)
             results.update(dice_diagnostics=dice, dice_report=explain(dice, support))
             if logger is not None:
                 for key, value in result["dice"].items():
                     logger.log_scalar(key, value, step=step)
-        if support is not None:
-            results["performant_support"] = support
         result["seconds"] = time.perf_counter() - train_start
         results["evaluations"].append(result)
         write_json(run_dir / "results.json", results)
