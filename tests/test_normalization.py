@@ -99,5 +99,5 @@ def test_policy_without_normalizer_still_loads_and_corrupt_statistics_are_refuse
     scale_key = next(k for k in raw["actor"] if k.endswith("scale"))
     raw["actor"][scale_key][0] = 0.0
     torch.save(raw, path)
-    with pytest.raises(PolicyFileError, match="observation statistics"):
+    with pytest.raises(PolicyFileError, match="observation statistics are invalid.*positive"):
         load_policy(path)

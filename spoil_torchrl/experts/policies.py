@@ -159,10 +159,11 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
             f"{path}: the weights do not fit a {meta['distribution']} actor ({err})"
         ) from err
     norm = observation_normalizer_of(actor)
-    if norm is not None and not bool(
-        torch.isfinite(norm.loc).all() & torch.isfinite(norm.scale).all() & (norm.scale > 0).all()
-    ):
-        raise PolicyFileError(f"{path}: the observation statistics are not finite and positive")
+    if norm is not None:
+        try:
+            norm.validate()
+        except ValueError as err:
+            raise PolicyFileError(f"{path}: the observation statistics are invalid ({err})") from err
     return actor.eval(), meta
 
 

@@ -42,10 +42,16 @@ class ObservationNormalizer(nn.Module):
             raise ValueError(
                 f"loc and scale must have the same shape, got {tuple(loc.shape)} and {tuple(scale.shape)}"
             )
-        if not bool(torch.isfinite(loc).all() & torch.isfinite(scale).all()) or bool((scale <= 0).any()):
-            raise ValueError("loc must be finite and scale finite and positive")
         self.register_buffer("loc", loc)
         self.register_buffer("scale", scale)
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` unless ``loc`` is finite and ``scale`` finite and positive (also after loading a
+        state dict, which bypasses the constructor's check)."""
+        finite = torch.isfinite(self.loc).all() & torch.isfinite(self.scale).all()
+        if not bool(finite) or bool((self.scale <= 0).any()):
+            raise ValueError("loc must be finite and scale finite and positive")
 
     @classmethod
     def from_observations(cls, observations: torch.Tensor, eps: float = STD_EPS) -> ObservationNormalizer:
