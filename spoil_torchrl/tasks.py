@@ -12,7 +12,7 @@ from __future__ import annotations
 import difflib
 from dataclasses import dataclass
 
-#: Where DSRL hosts its files since Nov 2025 (REFERENCES.md section 4); ``<file>`` is appended.
+#: Where DSRL hosts its files since Nov 2025 (the DSRL repository's README); ``<file>`` is appended.
 DSRL_BASE_URL = "https://huggingface.co/datasets/YYY-45/DSRL/resolve/main/"
 
 
@@ -105,7 +105,7 @@ _DATASETS = [
         (40, 556.19),
         "BallRun",
     ),
-    # CarCircle: the paper's Table C says 7 observation dims, REFERENCES.md says 8; unverified, so not checked.
+    # CarCircle: the paper's Table C says 7 observation dims, DSRL's infos.py says 8; unverified, so not checked.
     _d(
         "OfflineCarCircle-v0",
         "SafetyCarCircle-v0-100-1450.hdf5",
@@ -495,7 +495,7 @@ class EnvTask:
     dsrl_id: str | None = None
 
 
-# Sizes and cost rules: REFERENCES.md section 5 (measured with safety-gymnasium 1.0.0); cost limit: Table G.
+# Sizes and cost rules: measured with safety-gymnasium 1.0.0; cost limit: Table G.
 ENV_TASKS: dict[str, EnvTask] = {
     t.env_id: t
     for t in [

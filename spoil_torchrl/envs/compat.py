@@ -10,7 +10,7 @@ holds ints and needs nothing.)
 **The fix.** Before the package is imported, :func:`import_safety_gymnasium` loads ``assets/color.py`` by
 itself and replaces each colour by a view of the same array whose class defines ``__hash__``. The arrays, and
 so the rendered colours and the vision observations, are unchanged; rewards and costs are identical to a
-Python 3.10 run (REFERENCES.md section 8). The module is registered in ``sys.modules`` under its real name, so
+Python 3.10 run (measured). The module is registered in ``sys.modules`` under its real name, so
 the package then imports the patched table.
 
 **Fast reset (rendering only).** Navigation tasks rebuild their MuJoCo model at every reset and decode a 24 MB

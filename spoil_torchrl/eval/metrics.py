@@ -1,4 +1,4 @@
-"""Evaluation metrics of the paper's section 5.2 (REFERENCES.md section 3), one function per number.
+"""Evaluation metrics of the paper's section 5.2 (as OSRL / DSRL compute them), one function per number.
 
 Per episode (1-D reward and cost tensors of one episode, ``[T]`` or TED-style ``[T, 1]``):
 

@@ -5,7 +5,7 @@ Three distributions are offered, picked by name in :func:`make_actor`:
 * ``"tanh_normal"`` -- a tanh-squashed Gaussian rescaled to the action bounds. Its mean is clipped to
   +/- atanh(1 - eps) and its log-std to [-5, 2] (the ranges of DemoDICE's reference actor), and dataset actions
   are clipped to +/-(1 - eps) of the range before scoring, so that an action logged exactly on the bound gets a
-  finite log-probability (see REFERENCES.md section 2).
+  finite log-probability (DemoDICE's reference actor does the same).
 * ``"normal"`` -- a plain diagonal Gaussian with the same log-std clipping (the paper's Table J "Normal").
 * ``"categorical"`` -- one-hot categorical actions, used by the tabular checks.
 """
