@@ -6,8 +6,10 @@ Every ``results.json`` under the given folders with ``status == "finished"`` cou
 each seed contributes its aggregate (the mean of its last evaluations, as the paper does); the table gives the
 mean ± standard error over seeds of the normalised feasible return and the normalised cost, and marks safe
 results (mean normalised cost <= 1) in bold, as the paper's Table 1 / Table L. Algorithms are listed in the
-paper's order. A seed found twice, or runs of one dataset made with different training budgets (the ``train``
-section of the ``config.yaml`` beside each ``results.json``), stop the report with an error naming the runs.
+paper's order. Runs that did not finish (failed, interrupted, killed, still running) are listed as skipped, with
+the reason. A seed found twice (unless ``--latest``: the newest run counts), or runs of one dataset made with
+different training budgets (the ``train`` section of the ``config.yaml`` beside each ``results.json``), stop
+the report with an error naming the runs.
 The plot puts normalised cost on x and normalised feasible return on y, one marker per algorithm with
 standard-error bars, the safe region (cost <= 1) shaded; the curves plot each metric against the training
 step (mean over seeds, standard error shaded).
@@ -18,12 +20,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from collections import defaultdict
 from pathlib import Path
 
 import torch
 
 from spoil_torchrl.eval import mean_stderr
+from spoil_torchrl.trainers.run_dir import run_status
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
 
@@ -57,29 +61,51 @@ def _train_settings(results_path: Path) -> str | None:
     return None if train is None else OmegaConf.to_yaml(train)
 
 
-def load_runs(folders: list[Path]) -> dict[tuple[str, str], list[dict]]:
-    """``(dataset, algo) -> [results of each finished seed]``, sorted by seed."""
+def load_runs(
+    folders: list[Path], *, latest: bool = False, skipped: list[tuple[Path, str]] | None = None
+) -> dict[tuple[str, str], list[dict]]:
+    """``(dataset, algo) -> [results of each finished seed]``, sorted by seed.
+
+    Runs that are not finished (failed, interrupted, killed, still training: :func:`run_status`) are left out
+    and appended to ``skipped`` as ``(path, reason)``. A seed found twice is an error, unless ``latest``: then
+    the run whose ``results.json`` was written last counts and the others are skipped.
+    """
     runs: dict[tuple[str, str], list[dict]] = defaultdict(list)
-    where: dict[tuple[str, str, int], Path] = {}
-    budgets: dict[str, dict[str | None, Path]] = defaultdict(dict)
+    found: dict[tuple[str, str, int], list[tuple[float, Path, dict]]] = defaultdict(list)
+    skipped = [] if skipped is None else skipped
     for folder in folders:
         if not folder.exists():
             raise FileNotFoundError(f"{folder}: no such folder")
         for path in sorted(folder.rglob("results.json")):
-            results = json.loads(path.read_text())
-            if results.get("status") != "finished":
+            try:
+                results = json.loads(path.read_text())
+            except ValueError as err:
+                skipped.append((path, f"unreadable ({err})"))
+                continue
+            status = run_status(path.parent, results)
+            if status != "finished":
+                skipped.append((path, status))
                 continue
             key = (results["dataset"], results["algo"], results["seed"])
-            if key in where:
-                raise ValueError(f"seed {key[2]} of {key[1]} on {key[0]} twice: {where[key]} and {path}")
-            where[key] = path
-            budgets[results["dataset"]].setdefault(_train_settings(path), path)
-            runs[(results["dataset"], results["algo"])].append(results)
+            found[key].append((path.stat().st_mtime, path, results))
+    budgets: dict[str, dict[str | None, Path]] = defaultdict(dict)
+    for key, copies in sorted(found.items(), key=lambda item: str(item[0])):
+        copies.sort(key=lambda c: c[0])
+        if len(copies) > 1 and not latest:
+            raise ValueError(
+                f"seed {key[2]} of {key[1]} on {key[0]} twice: {copies[0][1]} and {copies[1][1]} "
+                "(pass --latest to use the newest run of each seed, or the folder of one sweep)"
+            )
+        skipped.extend((path, f"an older run of seed {key[2]}") for _, path, _ in copies[:-1])
+        _, path, results = copies[-1]
+        budgets[results["dataset"]].setdefault(_train_settings(path), path)
+        runs[(results["dataset"], results["algo"])].append(results)
     for dataset, settings in budgets.items():
         if len(settings) > 1:
             raise ValueError(
                 f"runs on {dataset} were made with different train settings, e.g. "
                 + " and ".join(map(str, settings.values()))
+                + " (report the folder of one sweep or budget)"
             )
     for group in runs.values():
         group.sort(key=lambda r: r["seed"])
@@ -261,11 +287,17 @@ def main() -> None:
     parser.add_argument(
         "--curves", type=Path, help="save the learning curves (mean ± s.e. over seeds) PNG here"
     )
+    parser.add_argument(
+        "--latest", action="store_true", help="a seed run more than once counts with its newest run"
+    )
     args = parser.parse_args()
+    skipped: list[tuple[Path, str]] = []
     try:
-        runs = load_runs(args.folders)
+        runs = load_runs(args.folders, latest=args.latest, skipped=skipped)
     except (FileNotFoundError, ValueError) as error:
         parser.error(str(error))
+    for path, reason in skipped:
+        print(f"skipped {path.parent}: {reason}", file=sys.stderr)
     if not runs:
         raise SystemExit(f"no finished results.json under {', '.join(map(str, args.folders))}")
     summary = summarize(runs)

@@ -27,6 +27,7 @@ import hashlib
 import json
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -42,6 +43,7 @@ from spoil_torchrl.data import (
     segment_pools,
     standardize_observations,
 )
+from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.prepare import prepare_dataset
 from spoil_torchrl.eval import Evaluator, RolloutWriter
 from spoil_torchrl.eval.dice_diagnostics import (
@@ -53,10 +55,31 @@ from spoil_torchrl.eval.dice_diagnostics import (
     support_accuracy,
 )
 from spoil_torchrl.eval.evaluator import METRICS
+from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.experts import save_policy
-from spoil_torchrl.tasks import get_env_task
-from spoil_torchrl.trainers import offline_trainer
+from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
+from spoil_torchrl.trainers import offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
+from spoil_torchrl.trainers.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from spoil_torchrl.trainers.resume import (
+    csv_row_counts,
+    pretraining_fingerprint,
+    settings_differ,
+    trim_csv_logs,
+)
+from spoil_torchrl.trainers.run_dir import (
+    CHECKPOINT_NAME,
+    RunDirError,
+    claim_run_dir,
+    release_run_dir,
+    write_lock,
+)
 
 
 def _json_safe(value):
@@ -74,14 +97,6 @@ def write_json(path: Path, payload: dict) -> None:
     """Write ``payload`` atomically (a reader never sees half a file)."""
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(_json_safe(payload), indent=2, allow_nan=False))
-    os.replace(tmp, path)
-
-
-def save_atomic(obj, path: Path) -> None:
-    """``torch.save`` through a temporary file, so a killed run never leaves half a checkpoint."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
     os.replace(tmp, path)
 
 
@@ -105,13 +120,38 @@ def make_logger(cfg: DictConfig, run_dir: Path):
     return get_logger(cfg.logger.type, logger_name=str(run_dir / "logs"), experiment_name=name)
 
 
+def settings_yaml(cfg: DictConfig) -> str:
+    """The resolved settings as written to ``config.yaml`` (``resume`` left out: it says how to start, not
+    what to train)."""
+    settings = OmegaConf.to_container(cfg, resolve=True)
+    settings.pop("resume", None)
+    return OmegaConf.to_yaml(OmegaConf.create(settings))
+
+
 def run(cfg: DictConfig, run_dir: Path) -> dict:
-    """Train and evaluate as configured; returns the content of ``results.json``."""
+    """Train and evaluate as configured (or continue the run in ``run_dir``, ``resume=true``); returns the
+    content of ``results.json``."""
     start = time.perf_counter()
+    resuming = claim_run_dir(run_dir, resume=cfg.get("resume", False))  # never starts over a run
+    try:
+        return _run(cfg, run_dir, resuming, start)
+    finally:
+        release_run_dir(run_dir)
+
+
+def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
     torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config_yaml = OmegaConf.to_yaml(cfg, resolve=True)
+    config_yaml = settings_yaml(cfg)
+    state = None
+    if resuming:  # the checkpoint of the last evaluation, made with the same settings
+        state = load_checkpoint(run_dir / CHECKPOINT_NAME)
+        differ = settings_differ(state["config_yaml"], config_yaml)
+        if differ:
+            raise CheckpointError(
+                f"{run_dir}: resume=true with other settings than the run's ({', '.join(differ)}); resume "
+                "with the run's own settings (its config.yaml) or start a new run"
+            )
     (run_dir / "config.yaml").write_text(config_yaml)
     config_hash = hashlib.sha256(config_yaml.encode()).hexdigest()[:12]
     task = get_env_task(cfg.task.env_id)
@@ -152,21 +192,26 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
         num_envs=int(cfg.task.eval_num_envs),
     )
     logger = make_logger(cfg, run_dir)
-    results = {
-        "algo": cfg.algo.name,
-        "dataset": cfg.dataset.name,
-        "env_id": task.env_id,
-        "seed": int(cfg.seed),
-        "config_hash": config_hash,
-        "data": data.summary(),
-        "status": "pre-training",
-        "evaluations": [],
-    }
+    if state is not None:  # the evaluations so far; the logs lose what was logged after the checkpoint
+        results = state["results"]
+        results.setdefault("resumed_at", []).append(int(state["step"]))
+        trim_csv_logs(run_dir / "logs", state["csv_rows"])
+    else:
+        results = {
+            "algo": cfg.algo.name,
+            "dataset": cfg.dataset.name,
+            "env_id": task.env_id,
+            "seed": int(cfg.seed),
+            "config_hash": config_hash,
+            "data": data.summary(),
+            "status": "pre-training",
+            "evaluations": [],
+        }
     write_json(run_dir / "results.json", results)
 
     try:
         pools = segment_pools(data.metadata) if "segments" in data.metadata else None
-        return _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start)
+        return _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start, state)
     except BaseException as err:  # keep what was done, say why it stopped, re-raise
         results["status"] = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
         results["error"] = f"{type(err).__name__}: {err}"
@@ -185,23 +230,31 @@ def performant_support(buffers, pools) -> dict | None:
     return support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
 
 
-def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start) -> dict:
+def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start, state) -> dict:
     task, train, config_hash = get_env_task(cfg.task.env_id), cfg.train, results["config_hash"]
     obs_dim, act_dim = task.observation_dim, task.action_dim
 
     # Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U).
     # (the constraint, the dataset's episode-cost threshold over the task's horizon, is read by COptiDICE only)
+    # A resumed run does it again, deterministically, and checks that it got the same (no second log rows).
     training = ALGORITHMS[cfg.algo.name](
         cfg.algo,
         buffers,
         obs_dim,
         act_dim,
         constraint=EpisodeConstraint(evaluator.cost_threshold, task.episode_length),
-        logger=logger,
+        logger=logger if state is None else None,
         progress=cfg.progress,
     )
     training.observation_norm = norm
-    results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - start)
+    fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
+    if state is not None and fingerprint != state["pretraining"]:
+        raise CheckpointError(
+            f"{run_dir}: pre-training did not reproduce the run's (another machine, library version or "
+            "dataset file?), so it cannot continue exactly; start a new run"
+        )
+    if state is None:
+        results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - start)
     # Diagnostics (never read by training): D_P's support estimate once, and a fixed subsample of the DICE
     # role on which (nu, lambda) are examined at every evaluation.
     support = performant_support(buffers, pools)
@@ -215,7 +268,8 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
     checkpoints = run_dir / "checkpoints"
     total, interval = int(train.steps), int(train.eval_interval)
     results["status"] = "training"
-    train_start = time.perf_counter()
+    train_start = time.perf_counter() - (0.0 if state is None else state["train_seconds"])
+    start -= 0.0 if state is None else state["total_seconds"]
 
     def evaluate(batch) -> dict | None:
         step = trainer.collected_frames
@@ -231,8 +285,6 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
                     distribution=cfg.algo.distribution,
                     info={"step": step, "algo": cfg.algo.name, "config_hash": config_hash},
                 )
-        if train.checkpoint:
-            save_atomic({"step": step, **training.stepper.state_dict()}, checkpoints / "training_state.pt")
         if training.dice is not None:
             dice = dice_diagnostics(training.dice, probe, probe_init, role=training.dice_role, pools=pools)
             result["dice"] = summary_scalars(dice)
@@ -245,6 +297,28 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         write_json(run_dir / "results.json", results)
         return {f"eval/{key}": result[key] for key in METRICS} | {"log_pbar": True}
 
+    def checkpoint(batch) -> None:
+        """After the evaluation and its log rows: everything a resumed run needs to continue from here."""
+        step = trainer.collected_frames
+        if not train.checkpoint or not results["evaluations"] or results["evaluations"][-1]["step"] != step:
+            return
+        save_checkpoint(
+            run_dir / CHECKPOINT_NAME,
+            {
+                "step": step,
+                "config_yaml": (run_dir / "config.yaml").read_text(),
+                "trainer": trainer.state_dict(),
+                "stepper": training.stepper.state_dict(),
+                "rng": rng_state(buffers),
+                "results": results,
+                "pretraining": fingerprint,
+                "csv_rows": csv_row_counts(run_dir / "logs"),
+                "train_seconds": time.perf_counter() - train_start,
+                "total_seconds": time.perf_counter() - start,
+            },
+        )
+        write_lock(run_dir)  # heartbeat
+
     trainer = offline_trainer(
         training.stepper,
         buffers.sample,
@@ -255,10 +329,14 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         progress_bar=cfg.progress,
     )
     trainer.register_op("post_steps_log", evaluate)
+    trainer.register_op("post_steps_log", checkpoint)  # runs after the Trainer has logged the evaluation
     metadata = {"task": task.env_id, "algo": cfg.algo.name, "seed": cfg.seed, "config_hash": config_hash}
-    with RolloutWriter(
-        run_dir / "rollouts.mcap", cost_threshold=evaluator.cost_threshold, metadata=metadata
-    ) as w:
+    mcap = dict(path=run_dir / "rollouts.mcap", cost_threshold=evaluator.cost_threshold, metadata=metadata)
+    if state is not None:  # continue exactly where the checkpoint was taken
+        trainer.load_state_dict(state["trainer"])
+        training.stepper.load_state_dict(state["stepper"])
+        set_rng_state(state["rng"], buffers)
+    with RolloutWriter(**mcap) if state is None else continue_rollouts(**mcap, until_step=state["step"]) as w:
         evaluator.writer = w  # every evaluation episode goes to the MCAP file, flushed per episode
         trainer.train()
 
@@ -290,10 +368,22 @@ def summary_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+#: Errors that are the user's to fix (a setting, a file, a run directory): one message, no traceback
+#: (``HYDRA_FULL_ERROR=1`` shows it).
+USER_ERRORS = (RunDirError, CheckpointError, DatasetError, UnknownDatasetError)
+
+
 @hydra.main(config_path="../configs", config_name="spoildice_dsrl", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    stop_on_signals()  # SIGTERM ends the run like Ctrl-C: marked "interrupted", its checkpoint intact
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    results = run(cfg, run_dir)
+    try:
+        results = run(cfg, run_dir)
+    except USER_ERRORS as err:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
     print(summary_table(results))
     if "dice_report" in results:
         print(f"\n{results['dice_report']}")

@@ -78,6 +78,7 @@ class DualDemoBuffers:
             raise ValueError(f"init_role {init_role!r} is not one of the roles {list(roles)}")
         sizes = {r: batch_size for r in [*roles, "init"]} if isinstance(batch_size, int) else dict(batch_size)
         self.buffers: dict[str, TensorDictReplayBuffer] = {}
+        self._generators: dict[str, torch.Generator] = {}
         for i, (role, ids) in enumerate([*roles.items(), ("init", None)]):
             if role == "init":
                 data = _role_data(episodes, torch.as_tensor(roles[init_role], dtype=torch.int64))
@@ -89,11 +90,12 @@ class DualDemoBuffers:
                     data = data.memmap_(Path(memmap_dir) / role)
             if data.shape[0] == 0:
                 raise ValueError(f"role {role!r} has no transitions")
+            self._generators[role] = torch.Generator().manual_seed(seed + i)
             self.buffers[role] = TensorDictReplayBuffer(
                 storage=TensorStorage(data),
                 sampler=RandomSampler(),
                 batch_size=sizes.get(role, 512),
-                generator=torch.Generator().manual_seed(seed + i),
+                generator=self._generators[role],
             )
 
     @property
@@ -106,6 +108,31 @@ class DualDemoBuffers:
     def sample(self) -> TensorDict:
         """One batch per role, ``TensorDict({role: batch, ..., "init": batch}, batch_size=[])``."""
         return TensorDict({role: buffer.sample() for role, buffer in self.buffers.items()}, batch_size=[])
+
+    def rng_state(self) -> dict[str, torch.Tensor]:
+        """Every buffer's sampling-generator state (role -> state), for bit-exact resumption.
+
+        Examples:
+            >>> from tensordict import TensorDict
+            >>> episodes = TensorDict({"observation": torch.randn(4, 2), "episode": torch.tensor([0, 0, 1, 1]),
+            ...                        "is_init": torch.tensor([[True], [False], [True], [False]])}, [4])
+            >>> buffers = DualDemoBuffers(episodes, {"unlabeled": [0, 1]}, batch_size=3)
+            >>> state = buffers.rng_state()
+            >>> first = buffers.sample()["unlabeled", "observation"]
+            >>> buffers.set_rng_state(state)
+            >>> bool((buffers.sample()["unlabeled", "observation"] == first).all())
+            True
+        """
+        return {role: generator.get_state() for role, generator in self._generators.items()}
+
+    def set_rng_state(self, state: Mapping[str, torch.Tensor]) -> None:
+        """Restore what :meth:`rng_state` returned (the same roles, in any order)."""
+        if set(state) != set(self._generators):
+            raise ValueError(
+                f"rng state for roles {sorted(state)}, but the buffers hold {sorted(self._generators)}"
+            )
+        for role, generator in self._generators.items():
+            generator.set_state(state[role])
 
     def annotate(
         self,

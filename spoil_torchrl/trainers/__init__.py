@@ -6,6 +6,14 @@ from spoil_torchrl.trainers.offline import (
     SampleBuffers,
     StepEvery,
     offline_trainer,
+    stop_on_signals,
 )
 
-__all__ = ["MultiLossStepper", "OfflineBatchSource", "SampleBuffers", "StepEvery", "offline_trainer"]
+__all__ = [
+    "MultiLossStepper",
+    "OfflineBatchSource",
+    "SampleBuffers",
+    "StepEvery",
+    "offline_trainer",
+    "stop_on_signals",
+]

@@ -15,6 +15,7 @@ pass per optimiser.
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
@@ -23,6 +24,31 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 from torchrl.trainers import OptimizationStepper, Trainer
+
+_stop_reason: str | None = None
+
+
+def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM,)) -> None:
+    """Make ``signals`` (default SIGTERM: ``kill``, a scheduler's pre-emption) end training cleanly.
+
+    The handler only records the signal; every :func:`offline_trainer` raises ``KeyboardInterrupt`` at its
+    next chunk boundary (at most ``steps_per_batch`` steps later), from its own hook, so the interrupt never
+    lands inside library code and the caller handles it like Ctrl-C. A second signal interrupts at once.
+    """
+
+    def handler(signum, frame):
+        global _stop_reason
+        if _stop_reason is not None:
+            raise KeyboardInterrupt(_stop_reason)
+        _stop_reason = f"signal {signal.Signals(signum).name}"
+
+    for signum in signals:
+        signal.signal(signum, handler)
+
+
+def _raise_if_stopped() -> None:
+    if _stop_reason is not None:
+        raise KeyboardInterrupt(_stop_reason)
 
 
 class OfflineBatchSource:
@@ -247,4 +273,5 @@ def offline_trainer(
         clip_grad_norm=False,
     )
     trainer.register_op("process_optim_batch", SampleBuffers(sample))
+    trainer.register_op("post_steps", _raise_if_stopped)  # see stop_on_signals
     return trainer

@@ -1,0 +1,116 @@
+"""What a resumed run checks before it continues, and the logs it puts back to the checkpoint's step.
+
+A run resumes from the checkpoint of its last evaluation (:mod:`spoil_torchrl.trainers.checkpoint`). The
+pre-training (discriminators, support cut, annotated buffers) is not stored: it is deterministic for a seed
+on one machine, so the resumed run does it again and compares :func:`pretraining_fingerprint` with the one in
+the checkpoint; the main stage's networks, optimisers, step counters and random-number streams come from
+the checkpoint. :func:`settings_differ` refuses a resume with other settings, and :func:`trim_csv_logs` cuts
+the CSV logs (TorchRL's :class:`~torchrl.record.loggers.CSVLogger`) back to the rows they had at the
+checkpoint, so a resumed run's logs hold every step once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+#: Settings that may change between a run and its resumption (they do not change what is trained).
+RESUMABLE_CHANGES = ("progress",)
+
+
+def pretraining_fingerprint(buffers, diagnostics: Mapping[str, float]) -> str:
+    """SHA-256 of every role's stored transitions (annotations included) and the pre-training diagnostics.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> episodes = TensorDict({"observation": torch.zeros(2, 1), "episode": torch.tensor([0, 1]),
+        ...                        "is_init": torch.ones(2, 1, dtype=torch.bool)}, [2])
+        >>> buffers = DualDemoBuffers(episodes, {"unlabeled": [0, 1]}, batch_size=1)
+        >>> before = pretraining_fingerprint(buffers, {"threshold": 0.5})
+        >>> buffers.annotate("unlabeled", "score", lambda td: td["observation"] + 1)
+        >>> before == pretraining_fingerprint(buffers, {"threshold": 0.5})
+        False
+    """
+    digest = hashlib.sha256()
+    for role in buffers.roles:
+        stored = buffers[role].storage[:]
+        for key in sorted(stored.keys(include_nested=True, leaves_only=True), key=str):
+            value = stored.get(key).detach().contiguous()
+            digest.update(f"{role}/{key}/{value.dtype}/{list(value.shape)}".encode())
+            digest.update(value.view(-1).view(torch.uint8).numpy() if value.numel() else b"")
+    digest.update(json.dumps(dict(diagnostics), sort_keys=True).encode())
+    return digest.hexdigest()
+
+
+def settings_differ(
+    old_yaml: str, new_yaml: str, *, allowed: tuple[str, ...] = RESUMABLE_CHANGES
+) -> list[str]:
+    """The dotted names of the settings that differ between two ``config.yaml`` texts (``allowed`` ignored).
+
+    Examples:
+        >>> old = "seed: 0\\ntrain:\\n  lr: 0.1\\nprogress: true"
+        >>> settings_differ(old, "seed: 0\\ntrain:\\n  lr: 0.2\\nprogress: false")
+        ['train.lr']
+    """
+
+    def flat(tree, prefix=""):
+        if isinstance(tree, dict):
+            out = {}
+            for key, value in tree.items():
+                out.update(flat(value, f"{prefix}{key}."))
+            return out
+        return {prefix[:-1]: tree}
+
+    def load(text: str) -> dict:
+        return OmegaConf.to_container(OmegaConf.create(text)) if text.strip() else {}
+
+    old, new = flat(load(old_yaml)), flat(load(new_yaml))
+    keys = sorted(set(old) | set(new))
+    return [k for k in keys if old.get(k) != new.get(k) and k.split(".")[0] not in allowed]
+
+
+def csv_row_counts(log_dir: str | os.PathLike) -> dict[str, int]:
+    """Lines of every ``.csv`` file under ``log_dir`` (relative path -> count; empty without logs)."""
+    log_dir = Path(log_dir)
+    if not log_dir.is_dir():
+        return {}
+    counts = {}
+    for path in sorted(log_dir.rglob("*.csv")):
+        with open(path, "rb") as f:
+            counts[str(path.relative_to(log_dir))] = sum(1 for _ in f)
+    return counts
+
+
+def trim_csv_logs(log_dir: str | os.PathLike, counts: Mapping[str, int]) -> None:
+    """Cut every ``.csv`` file under ``log_dir`` back to its line count in ``counts`` (files that did not
+    exist then are removed), undoing what a killed run logged after its checkpoint.
+
+    Examples:
+        >>> import tempfile
+        >>> log_dir = Path(tempfile.mkdtemp())
+        >>> _ = (log_dir / "loss.csv").write_text("100,0.5\\n")
+        >>> counts = csv_row_counts(log_dir)
+        >>> _ = (log_dir / "loss.csv").write_text("100,0.5\\n200,0.4\\n"); _ = (log_dir / "new.csv").write_text("1,1\\n")
+        >>> trim_csv_logs(log_dir, counts)
+        >>> (log_dir / "loss.csv").read_text(), (log_dir / "new.csv").exists()
+        ('100,0.5\\n', False)
+    """
+    log_dir = Path(log_dir)
+    for name, rows in csv_row_counts(log_dir).items():
+        path = log_dir / name
+        keep = counts.get(name, 0)
+        if keep == 0:
+            path.unlink()
+        elif rows > keep:
+            with open(path, "rb") as f:
+                lines = f.readlines()[:keep]
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_bytes(b"".join(lines))
+            os.replace(tmp, path)

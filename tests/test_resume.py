@@ -1,0 +1,212 @@
+"""Runs that survive: a run killed with SIGKILL (mid-training, mid-evaluation) resumes and ends exactly as an
+uninterrupted run; a start never destroys a run; sweeps keep every job; the Hydra launchers work."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
+# 600 steps, an evaluation of 2 episodes every 100: long enough to be killed at a chosen point
+SHORT = ["preset=smoke", "train.steps=600", "train.eval_episodes=2", "progress=false"]
+
+
+def _args(dataset, run_dir, *overrides):
+    data = [f"dataset.source=file:{dataset}", "dataset.n_safe=2", "dataset.n_performant=2"]
+    return [sys.executable, RECIPE, *SHORT, *data, f"hydra.run.dir={run_dir}", *overrides]
+
+
+def _run(dataset, run_dir, *overrides, ok=True):
+    proc = subprocess.run(
+        _args(dataset, run_dir, *overrides), capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    if ok:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def _evaluations(run_dir: Path) -> int:
+    try:
+        return len(json.loads((run_dir / "results.json").read_text())["evaluations"])
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+def _episodes_on_disk(run_dir: Path) -> int:
+    from spoil_torchrl.eval import read_rollouts
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return int(read_rollouts(run_dir / "rollouts.mcap").episodes.batch_size[0])
+    except Exception:  # not there yet, or caught mid-header
+        return 0
+
+
+def _kill_when(dataset, run_dir, condition) -> None:
+    proc = subprocess.Popen(
+        _args(dataset, run_dir), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT
+    )
+    try:
+        deadline = time.monotonic() + 240
+        while not condition(run_dir):
+            assert proc.poll() is None, "the run ended before it could be killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def _plain_mcap_episodes(path: Path) -> list[tuple[int, int]]:
+    """(evaluation step, length) of every episode summary, read with the plain mcap reader."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [
+            (json.loads(m.data)["evaluation_step"], json.loads(m.data)["length"])
+            for _, _, m in make_reader(f).iter_messages(topics=["/eval/episode"])
+        ]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory, tiny_pc1_dataset):
+    run_dir = tmp_path_factory.mktemp("full")
+    _run(tiny_pc1_dataset, run_dir)
+    return run_dir
+
+
+def _same_run(a: Path, b: Path) -> None:
+    ra, rb = (json.loads((d / "results.json").read_text()) for d in (a, b))
+    assert rb["status"] == "finished" and rb["resumed_at"]
+    strip = ("seconds",)
+    assert [{k: v for k, v in e.items() if k not in strip} for e in ra["evaluations"]] == [
+        {k: v for k, v in e.items() if k not in strip} for e in rb["evaluations"]
+    ]
+    assert ra["aggregate"] == rb["aggregate"] and ra["dice_diagnostics"] == rb["dice_diagnostics"]
+    pa, pb = (torch.load(d / "checkpoints" / "policy.pt", weights_only=True)["actor"] for d in (a, b))
+    assert pa.keys() == pb.keys() and all(torch.equal(pa[k], pb[k]) for k in pa)
+    assert _plain_mcap_episodes(b / "rollouts.mcap") == _plain_mcap_episodes(a / "rollouts.mcap")
+    assert not (b / "rollouts.mcap.before-resume").exists() and not (b / "run.lock").exists()
+    for log in (a / "logs").rglob("*.csv"):  # every step logged once
+        assert (b / log.relative_to(a)).read_text().count("\n") == log.read_text().count("\n"), log.name
+
+
+def test_a_run_killed_mid_training_resumes_bit_exactly(tmp_path, tiny_pc1_dataset, uninterrupted):
+    from spoil_torchrl.trainers.run_dir import run_status
+
+    run_dir = tmp_path / "run"
+    _kill_when(tiny_pc1_dataset, run_dir, lambda d: _evaluations(d) >= 2)
+    assert run_status(run_dir) == "killed"
+    # a plain restart refuses to overwrite it, with one clear line and no traceback
+    proc = _run(tiny_pc1_dataset, run_dir, ok=False)
+    assert proc.returncode == 2 and "resume=true" in proc.stderr and "Traceback" not in proc.stderr
+    # the report says why it leaves the run out
+    report = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "report.py"), str(tmp_path), str(uninterrupted)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert report.returncode == 0 and f"skipped {run_dir}: killed" in report.stderr
+    _run(tiny_pc1_dataset, run_dir, "resume=true")
+    _same_run(uninterrupted, run_dir)
+
+
+def test_a_run_killed_mid_evaluation_resumes_bit_exactly(tmp_path, tiny_pc1_dataset, uninterrupted):
+    run_dir = tmp_path / "run"
+    # killed while an evaluation's episodes are on disk but the evaluation is not recorded yet
+    _kill_when(tiny_pc1_dataset, run_dir, lambda d: _episodes_on_disk(d) > 2 * max(_evaluations(d), 1))
+    assert _episodes_on_disk(run_dir) > 2 * _evaluations(run_dir)
+    _run(tiny_pc1_dataset, run_dir, "resume=auto")
+    _same_run(uninterrupted, run_dir)
+
+
+def test_resume_refuses_other_settings_and_a_damaged_checkpoint(tmp_path, tiny_pc1_dataset):
+    run_dir = tmp_path / "run"
+    _kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
+    proc = _run(tiny_pc1_dataset, run_dir, "resume=true", "train.lr=0.1", ok=False)
+    assert proc.returncode == 2 and "train.lr" in proc.stderr
+    checkpoint = run_dir / "checkpoints" / "training_state.pt"
+    data = bytearray(checkpoint.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    checkpoint.write_bytes(bytes(data))
+    proc = _run(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
+    assert proc.returncode == 2 and str(checkpoint) in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_sigterm_marks_the_run_interrupted_and_keeps_its_checkpoint(tmp_path, tiny_pc1_dataset):
+    run_dir = tmp_path / "run"
+    proc = subprocess.Popen(
+        _args(tiny_pc1_dataset, run_dir),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        cwd=ROOT,
+        text=True,
+    )
+    deadline = time.monotonic() + 240
+    while _evaluations(run_dir) < 1 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=120)
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["status"] == "interrupted" and "SIGTERM" in results["error"]
+    assert (run_dir / "checkpoints" / "training_state.pt").exists() and not (run_dir / "run.lock").exists()
+
+
+def _sweep(tmp_path, dataset, *overrides):
+    cmd = [
+        sys.executable,
+        RECIPE,
+        "-m",
+        "preset=smoke",
+        "algo=bc",
+        "logger=none",
+        "progress=false",
+        f"dataset.source=file:{dataset}",
+        "dataset.n_safe=2",
+        "dataset.n_performant=2",
+        f"hydra.sweep.dir={tmp_path}",
+        *overrides,
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = sorted(tmp_path.rglob("results.json"))
+    return [json.loads(p.read_text()) for p in runs], runs
+
+
+def test_a_sweep_keeps_every_job(tmp_path, tiny_pc1_dataset):
+    results, paths = _sweep(tmp_path, tiny_pc1_dataset, "train.lr=1e-4,3e-4")
+    assert len(paths) == 2 and len({p.parent for p in paths}) == 2
+    assert all(r["status"] == "finished" for r in results)
+    lrs = sorted(
+        float(line.split(":")[1])
+        for p in paths
+        for line in (p.parent / "config.yaml").read_text().splitlines()
+        if line.strip().startswith("lr:") and line.startswith("  lr")
+    )
+    assert lrs == [1e-4, 3e-4]
+
+
+@pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
+def test_hydra_launchers_run_a_two_job_sweep(tmp_path, tiny_pc1_dataset, launcher):
+    plugin = {
+        "joblib": "hydra_plugins.hydra_joblib_launcher",
+        "submitit_local": "hydra_plugins.hydra_submitit_launcher",
+    }
+    if importlib.util.find_spec(plugin[launcher]) is None:
+        pytest.skip(f"the launchers extra is not installed ({plugin[launcher]})")
+    extra = ["hydra.launcher.n_jobs=2"] if launcher == "joblib" else ["hydra.launcher.timeout_min=10"]
+    results, paths = _sweep(tmp_path, tiny_pc1_dataset, f"hydra/launcher={launcher}", "seed=0,1", *extra)
+    assert sorted(r["seed"] for r in results) == [0, 1] and all(r["status"] == "finished" for r in results)
