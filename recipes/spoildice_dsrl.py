@@ -80,6 +80,7 @@ from spoil_torchrl.trainers.run_dir import (
     release_run_dir,
     write_lock,
 )
+from spoil_torchrl.trainers.settings import SettingsError, check_settings
 
 
 def _json_safe(value):
@@ -98,13 +99,6 @@ def write_json(path: Path, payload: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(_json_safe(payload), indent=2, allow_nan=False))
     os.replace(tmp, path)
-
-
-def check_train_settings(train) -> None:
-    """Fail before any training on settings that would only break at the first evaluation."""
-    for key in ("steps", "eval_interval", "eval_episodes", "last_evaluations", "batch_size"):
-        if int(train[key]) < 1:
-            raise ValueError(f"train.{key} must be >= 1, got {train[key]}")
 
 
 def aggregate(evaluations: list[dict], last: int) -> dict:
@@ -132,6 +126,9 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     """Train and evaluate as configured (or continue the run in ``run_dir``, ``resume=true``); returns the
     content of ``results.json``."""
     start = time.perf_counter()
+    check_settings(OmegaConf.to_container(cfg, resolve=True))  # before any data loading or training
+    if cfg.algo.name not in ALGORITHMS:
+        raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     resuming = claim_run_dir(run_dir, resume=cfg.get("resume", False))  # never starts over a run
     try:
         return _run(cfg, run_dir, resuming, start)
@@ -156,9 +153,14 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
     config_hash = hashlib.sha256(config_yaml.encode()).hexdigest()[:12]
     task = get_env_task(cfg.task.env_id)
     train = cfg.train
-    check_train_settings(train)
-    if cfg.algo.name not in ALGORITHMS:
-        raise ValueError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
+    if train.checkpoint:  # an unwritable checkpoint folder fails now, not at the first evaluation
+        probe = run_dir / "checkpoints" / ".writable"
+        try:
+            probe.parent.mkdir(parents=True, exist_ok=True)
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as err:
+            raise RunDirError(f"{probe.parent}: cannot write checkpoints there ({err})") from None
 
     # Input: D_S, D_P, D_U (episode ids of one dataset) and the initial states D_0.
     # (an algorithm that needs another role, e.g. SafeDICE's non-preferred D_N, lists it in algo.extra_roles)
@@ -370,7 +372,7 @@ def summary_table(results: dict) -> str:
 
 #: Errors that are the user's to fix (a setting, a file, a run directory): one message, no traceback
 #: (``HYDRA_FULL_ERROR=1`` shows it).
-USER_ERRORS = (RunDirError, CheckpointError, DatasetError, UnknownDatasetError)
+USER_ERRORS = (SettingsError, RunDirError, CheckpointError, DatasetError, UnknownDatasetError)
 
 
 @hydra.main(config_path="../configs", config_name="spoildice_dsrl", version_base="1.3")

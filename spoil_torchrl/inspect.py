@@ -14,7 +14,7 @@ import math
 import sys
 from pathlib import Path
 
-from spoil_torchrl.eval.mcap_io import RolloutFileError, Rollouts, read_rollouts
+from spoil_torchrl.eval.mcap_io import MCAP_MAGIC, RolloutFileError, Rollouts, read_rollouts
 
 COLUMNS = (
     ("eval step", "evaluation_step"),
@@ -100,6 +100,16 @@ def plot_rollouts(rollouts: Rollouts, path: str | Path) -> Path:
     return path
 
 
+def _ends_like_a_finished_file(path: Path) -> bool:
+    """Whether the file ends with the MCAP magic bytes, as a file whose writer finished it does."""
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        if f.tell() < 2 * len(MCAP_MAGIC):
+            return False
+        f.seek(-len(MCAP_MAGIC), 2)
+        return f.read() == MCAP_MAGIC
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m spoil_torchrl.inspect",
@@ -112,6 +122,14 @@ def main(argv: list[str] | None = None) -> int:
         rollouts = read_rollouts(args.file)
     except (FileNotFoundError, RolloutFileError) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 1
+    if not rollouts.finished and _ends_like_a_finished_file(args.file):
+        print(
+            f"error: {args.file}: the file was finished by its writer but is damaged ({rollouts.stop_reason}); "
+            f"{rollouts.episodes.batch_size[0]} complete episode(s) before the damage are readable with "
+            "read_rollouts",
+            file=sys.stderr,
+        )
         return 1
     print(f"file: {args.file}")
     for key, value in sorted(rollouts.metadata.items()):

@@ -161,7 +161,8 @@ def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dat
         f"hydra.run.dir={tmp_path}",
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert proc.returncode != 0 and "train.eval_interval must be >= 1" in proc.stderr
+    assert proc.returncode == 2 and "train.eval_interval = 0: expected an integer >= 1" in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "results.json").exists()
 
 
 def test_report_tables_and_plots_finished_runs(tmp_path):

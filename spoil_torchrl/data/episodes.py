@@ -63,7 +63,7 @@ def validate_arrays(
 
     Raises :class:`DatasetError` naming ``source`` for: a missing key, an empty dataset, arrays of different
     lengths, observations / actions that are not 2-D (or 1-D actions, taken as one action dim), NaN or infinite
-    values, non-0/1 flags, and sizes that differ from ``observation_dim`` / ``action_dim``.
+    values, negative costs, non-0/1 flags, and sizes that differ from ``observation_dim`` / ``action_dim``.
 
     Examples:
         >>> arrays = {k: np.zeros((3, 2), np.float32) for k in ("observations", "next_observations", "actions")}
@@ -107,6 +107,13 @@ next_observations, actions, rewards, costs, terminals, timeouts)
         bad = _first_non_finite_row(value)
         if bad >= 0:
             raise DatasetError(f"{source}: '{key}' contains NaN or infinite values (first at row {bad})")
+    negative = (out["costs"] < 0).nonzero()
+    if negative.numel():
+        raise DatasetError(
+            f"{source}: {negative.numel()} costs are negative (first at row {int(negative[0])}: "
+            f"{float(out['costs'][negative[0]]):.4g}); costs must be >= 0, as the labelling (safe iff the episode "
+            "cost is <= the threshold) and the normalised cost assume"
+        )
     for key, expected, actual in (
         ("observation", observation_dim, out["observations"].shape[1]),
         ("action", action_dim, out["actions"].shape[1]),

@@ -35,7 +35,7 @@ def _open(path: Path) -> h5py.File:
         raise DatasetError(f"{path}: not an HDF5 file (a partial download? delete it and fetch it again)")
     try:
         return h5py.File(path, "r")
-    except OSError as err:
+    except (OSError, RuntimeError) as err:  # h5py raises RuntimeError for some damaged headers
         raise DatasetError(
             f"{path}: the HDF5 file is truncated or corrupt ({err}); delete it and fetch it again"
         ) from err
@@ -82,12 +82,19 @@ def read_dsrl_file(
     if mm is not None:
         mm.mkdir(parents=True, exist_ok=True)
     with _open(path) as f:
-        missing = [k for k in DSRL_KEYS if k not in f]
-        if missing:
-            raise DatasetError(
-                f"{path}: missing array '{missing[0]}' (a DSRL file has {', '.join(DSRL_KEYS)})"
-            )
-        arrays = {k: _read(f[k], path, k, mm) for k in DSRL_KEYS}
+        try:
+            missing = [k for k in DSRL_KEYS if k not in f]
+            if missing:
+                raise DatasetError(
+                    f"{path}: missing array '{missing[0]}' (a DSRL file has {', '.join(DSRL_KEYS)})"
+                )
+            objects = {k: f[k] for k in DSRL_KEYS}
+            odd = [k for k, v in objects.items() if not isinstance(v, h5py.Dataset)]
+            if odd:
+                raise DatasetError(f"{path}: '{odd[0]}' is a {type(objects[odd[0]]).__name__}, not an array")
+            arrays = {k: _read(v, path, k, mm) for k, v in objects.items()}
+        except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:  # a damaged header or link
+            raise DatasetError(f"{path}: the HDF5 file is corrupt ({type(err).__name__}: {err})") from err
     return episodes_from_arrays(
         arrays, source=str(path), observation_dim=observation_dim, action_dim=action_dim
     )
@@ -95,9 +102,23 @@ def read_dsrl_file(
 
 def read_metadata(path: str | os.PathLike) -> dict:
     """The JSON metadata this project writes into its own files (``{}`` for plain DSRL files)."""
-    with _open(Path(path)) as f:
-        raw = f.attrs.get(METADATA_ATTR)
-    return json.loads(raw) if raw is not None else {}
+    path = Path(path)
+    with _open(path) as f:
+        try:
+            raw = f.attrs.get(METADATA_ATTR)
+        except (OSError, RuntimeError, KeyError) as err:
+            raise DatasetError(f"{path}: cannot read the metadata attribute ({err})") from err
+    if raw is None:
+        return {}
+    try:
+        metadata = json.loads(raw)
+    except (ValueError, TypeError) as err:
+        raise DatasetError(
+            f"{path}: the metadata attribute {METADATA_ATTR!r} is not valid JSON ({err})"
+        ) from None
+    if not isinstance(metadata, dict):
+        raise DatasetError(f"{path}: the metadata attribute {METADATA_ATTR!r} is not a JSON object")
+    return metadata
 
 
 def write_dsrl_file(
@@ -128,7 +149,8 @@ def write_dsrl_file(
             for key in DSRL_KEYS:
                 value = arrays[key]
                 value = value.numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
-                f.create_dataset(key, data=value, compression=compression)
+                # fletcher32: HDF5 checks every chunk on read, so damaged bytes fail instead of loading
+                f.create_dataset(key, data=value, compression=compression, fletcher32=value.size > 0)
             if metadata is not None:
                 f.attrs[METADATA_ATTR] = json.dumps(dict(metadata))
         os.replace(tmp, path)

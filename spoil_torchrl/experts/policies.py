@@ -21,6 +21,7 @@ intermediate PPO / PPO-Lagrangian checkpoints, from which :mod:`spoil_torchrl.da
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
@@ -56,6 +57,16 @@ def _sizes_from_weights(state_dict: dict) -> tuple[int, tuple[int, ...], int]:
     if out % 2:
         raise PolicyFileError(f"the last layer has {out} outputs; a Gaussian actor has 2 x action_dim")
     return int(weights[0].shape[1]), hidden, out // 2
+
+
+def weights_digest(state: dict[str, torch.Tensor]) -> str:
+    """SHA-256 over a state dict's names, dtypes, shapes and bytes (stored in policy files, checked on load)."""
+    digest = hashlib.sha256()
+    for key in sorted(state):
+        value = state[key].detach().cpu().contiguous()
+        digest.update(f"{key}/{value.dtype}/{list(value.shape)}".encode())
+        digest.update(value.reshape(-1).view(torch.uint8).numpy() if value.numel() else b"")
+    return digest.hexdigest()
 
 
 def save_policy(
@@ -95,6 +106,7 @@ def save_policy(
             "distribution": distribution,
             "observation_norm": observation_normalizer_of(actor) is not None,
             "actor": state,
+            "weights_sha256": weights_digest(state),
             "info": dict(info or {}),
         },
         tmp,
@@ -116,7 +128,8 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
         ``observation_norm`` (whether the actor standardises its raw observations itself) and ``info``.
 
     Raises:
-        PolicyFileError: missing or unreadable file, or a policy for another task.
+        PolicyFileError: missing or unreadable file, damaged weights (checksum mismatch, files written by
+            :func:`save_policy`; non-finite values, any file), or a policy for another task.
     """
     path = Path(path)
     if not path.is_file():
@@ -128,6 +141,11 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
     if not isinstance(raw, dict) or not isinstance(raw.get("actor"), dict):
         raise PolicyFileError(f"{path}: not a policy checkpoint (no 'actor' state dict)")
     state = raw["actor"]
+    if "weights_sha256" in raw and weights_digest(state) != raw["weights_sha256"]:
+        raise PolicyFileError(f"{path}: the weights do not match their checksum (the file is damaged)")
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise PolicyFileError(f"{path}: non-finite weights in {', '.join(bad[:3])}")
     obs_dim, hidden, act_dim = _sizes_from_weights(state)
     meta = {
         "env_id": raw.get("env_id"),

@@ -142,3 +142,17 @@ def test_float64_and_bool_flags_give_the_same_labels():
     )
     a, b = label_ilsp(episodes_from_arrays(as_bool), 3), label_ilsp(episodes_from_arrays(as_f64), 3)
     assert all(a[k].tolist() == b[k].tolist() for k in a)
+
+
+def test_an_episode_at_exactly_the_threshold_is_safe_and_sets_the_return_cut():
+    from tensordict import TensorDict
+
+    from spoil_torchrl.data.labeling import ilsp_return_threshold
+
+    # episode 2 has cost == threshold: it is safe (<=), so its high return sets the performant cut
+    stats = TensorDict(
+        {"return": torch.tensor([1.0, 2.0, 9.0, 20.0]), "cost": torch.tensor([0.0, 3.0, 10.0, 50.0])}, [4]
+    )
+    assert ilsp_return_threshold(stats, cost_threshold=10.0, return_quantile=1.0) == 9.0
+    roles = label_ilsp(stats, cost_threshold=10.0, return_quantile=1.0)
+    assert roles["safe"].tolist() == [0, 1, 2] and roles["performant"].tolist() == [2, 3]

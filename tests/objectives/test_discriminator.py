@@ -201,3 +201,25 @@ def test_compiles_with_the_gradient_penalty(batch):
     out = compiled(batch)
     (out["loss_positive"] + out["loss_unlabeled"] + out["loss_gradient_penalty"]).backward()
     assert all(p.grad is not None for p in loss.parameters())
+
+
+def test_gradient_penalty_is_the_two_sided_one_on_a_linear_discriminator(batch):
+    # logit = w . [s, a] has input gradient w everywhere: the penalty is c * (|w| - 1)^2, not c * |w|^2
+    disc = make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=())
+    with torch.no_grad():
+        for p in disc.parameters():
+            p.zero_()
+        weight = next(p for p in disc.parameters() if p.ndim == 2)
+        weight[0, 0] = 3.0  # |w| = 3
+    out = PUDiscriminatorLoss(disc, gradient_penalty=2.0)(batch)
+    torch.testing.assert_close(out["loss_gradient_penalty"], torch.tensor(2.0 * (3.0 - 1.0) ** 2))
+
+
+def test_log_ratio_module_writes_the_discriminator_logit(batch):
+    disc = make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=(8,))
+    td = batch["unlabeled"].clone()
+    expected = disc(td.clone())["logit"].detach()
+    torch.testing.assert_close(LogRatio(disc)(td)["log_ratio_performant"], expected)
+    eta = 0.3
+    pu = LogRatio(disc, out_key="r", log_ratio_fn=lambda logit: pu_log_ratio(logit, eta))(td)["r"]
+    torch.testing.assert_close(pu, pu_log_ratio(expected, eta))

@@ -123,6 +123,16 @@ def test_weights_do_not_overflow(batch):
     assert w[0].item() > 1000 * w[1].item()
 
 
+def test_weights_stay_finite_across_a_thousand_nats(batch):
+    # a shift by the batch minimum (instead of the maximum) would give exp(1000) = inf here
+    batch["unlabeled", "log_ratio_performant"][:] = -500.0
+    batch["unlabeled", "log_ratio_performant"][0] = 500.0
+    out = _loss()(batch)
+    w = batch["unlabeled", "dice_weight"]
+    assert torch.isfinite(w).all() and torch.isfinite(out["loss_nu"]) and w.max() > 0
+    assert int(w.argmax()) == 0
+
+
 def test_only_mean_reduction_is_accepted():
     for reduction in ("none", "sum"):
         with pytest.raises(ValueError, match="reduction"):

@@ -1,0 +1,109 @@
+"""Checking a run's settings before anything is loaded or trained, so a typo never costs a pre-training.
+
+:func:`check_settings` walks the resolved configuration of the main recipe and checks every value whose
+meaning is fixed by its name (learning rates, discount factors, quantiles, step counts, penalty coefficients,
+layer sizes, ...) wherever it appears, plus the top-level keys. Every problem is a :class:`SettingsError`
+naming the dotted key, the value and what is expected.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+
+class SettingsError(ValueError):
+    """A setting with a value it cannot have."""
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _positive_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
+
+
+def _open_unit(value: Any) -> bool:
+    return _number(value) and 0.0 < value < 1.0
+
+
+def _non_negative(value: Any) -> bool:
+    return _number(value) and value >= 0
+
+
+def _penalty(value: Any) -> bool:  # a coefficient, or one per role
+    return _non_negative(value) or (
+        isinstance(value, Mapping) and all(_non_negative(v) for v in value.values())
+    )
+
+
+def _layers(value: Any) -> bool:
+    return isinstance(value, (list, tuple)) and all(_positive_int(v) for v in value)
+
+
+#: key name -> (check, what is expected); applies wherever the key appears in ``train`` or ``algo``.
+RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "lr": (lambda v: _number(v) and v > 0, "a finite number > 0"),
+    "gamma": (_open_unit, "a number in (0, 1)"),
+    "kappa": (_open_unit, "a quantile in (0, 1)"),
+    "eta": (_open_unit, "a class prior in (0, 1)"),
+    "steps": (_positive_int, "an integer >= 1"),
+    "discriminator_steps": (_positive_int, "an integer >= 1"),
+    "eval_interval": (_positive_int, "an integer >= 1"),
+    "eval_episodes": (_positive_int, "an integer >= 1"),
+    "last_evaluations": (_positive_int, "an integer >= 1"),
+    "batch_size": (_positive_int, "an integer >= 1"),
+    "log_interval": (_positive_int, "an integer >= 1"),
+    "update_interval": (_positive_int, "an integer >= 1"),
+    "gradient_penalty": (_penalty, "a number >= 0 (or one per role)"),
+    "nu_gradient_penalty": (_penalty, "a number >= 0"),
+    "hidden_cells": (_layers, "a list of layer sizes >= 1"),
+    "alpha": (
+        lambda v: v == "auto" or _non_negative(v),
+        "a number >= 0 (or auto where the algorithm allows)",
+    ),
+}
+
+
+def _rule(key: str) -> tuple[Callable[[Any], bool], str] | None:
+    if key in RULES:
+        return RULES[key]
+    if key.endswith("_lr"):
+        return RULES["lr"]
+    return None
+
+
+def _walk(tree: Mapping, prefix: str):
+    for key, value in tree.items():
+        name = f"{prefix}.{key}"
+        if isinstance(value, Mapping) and key not in ("gradient_penalty",):
+            yield from _walk(value, name)
+        else:
+            yield name, str(key), value
+
+
+def check_settings(cfg: Mapping[str, Any]) -> None:
+    """Raise :class:`SettingsError` for the first setting of ``cfg`` (a resolved mapping) that cannot be right.
+
+    Examples:
+        >>> check_settings({"seed": 0, "threads": 1, "train": {"lr": 3e-4}, "algo": {"kappa": 0.01}})
+        >>> check_settings({"seed": 0, "threads": 1, "train": {"lr": 3e-4}, "algo": {"kappa": 1.5}})
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.trainers.settings.SettingsError: algo.kappa = 1.5: expected a quantile in (0, 1)
+    """
+    for key, check, expected in (
+        ("seed", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+        ("threads", _positive_int, "an integer >= 1"),
+    ):
+        if key in cfg and not check(cfg[key]):
+            raise SettingsError(f"{key} = {cfg[key]!r}: expected {expected}")
+    for section in ("train", "algo"):
+        if not isinstance(cfg.get(section), Mapping):
+            continue
+        for name, key, value in _walk(cfg[section], section):
+            rule = _rule(key)
+            if rule is not None and not rule[0](value):
+                raise SettingsError(f"{name} = {value!r}: expected {rule[1]}")

@@ -1,0 +1,299 @@
+"""The bad-input corpus: every way a user can hand the library a broken file or setting gets one clear error
+that names the file or setting, and leaves every file outside the run directory as it was."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from spoil_torchrl.data import DualDemoBuffers, load_episodes
+from spoil_torchrl.data.episodes import DatasetError, select_episodes
+from spoil_torchrl.data.hdf5 import METADATA_ATTR, read_metadata, write_dsrl_file
+from spoil_torchrl.experts import PolicyFileError, load_policy, save_policy
+from spoil_torchrl.modules import make_actor
+from spoil_torchrl.tasks import UnknownDatasetError
+from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from spoil_torchrl.trainers.settings import SettingsError, check_settings
+from tests.data.helpers import make_arrays
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _good(path: Path, **kwargs) -> Path:
+    return write_dsrl_file(path, make_arrays(lengths=(30, 20, 40), **kwargs), metadata={"note": "ok"})
+
+
+# -- data files -----------------------------------------------------------------------------------------------
+
+
+def _missing(path):
+    return path
+
+
+def _empty(path):
+    path.write_bytes(b"")
+    return path
+
+
+def _not_hdf5(path):
+    path.write_text("observations,actions\n1,2\n")
+    return path
+
+
+def _truncated(path):
+    data = _good(path).read_bytes()
+    path.write_bytes(data[: len(data) // 3])
+    return path
+
+
+def _damaged_header(path):
+    data = bytearray(_good(path).read_bytes())
+    for i in range(40, 120):  # superblock and root group header, after the signature
+        data[i] ^= 0xA5
+    path.write_bytes(bytes(data))
+    return path
+
+
+def _damaged_chunk(path):
+    write_dsrl_file(path, make_arrays(lengths=(300, 200), ends=("timeout", "timeout")), compression=None)
+    with h5py.File(path, "r") as f:
+        offset = f["observations"].id.get_offset() or f["observations"].id.get_chunk_info(0).byte_offset
+    data = bytearray(path.read_bytes())
+    data[offset + 16] ^= 0xFF  # one byte of the observations, its fletcher32 checksum kept
+    path.write_bytes(bytes(data))
+    return path
+
+
+def _arrays_file(**change):
+    def make(path):
+        arrays = make_arrays(lengths=(3, 2, 4))
+        for key, value in change.items():
+            if value is None:
+                del arrays[key]
+            else:
+                arrays[key] = value(arrays[key])
+        with h5py.File(path, "w") as f:  # bypasses the writer's own checks, as a foreign file would
+            for key, value in arrays.items():
+                f.create_dataset(key, data=value)
+        return path
+
+    return make
+
+
+DATA_CASES = {
+    "missing file": (_missing, "no such file"),
+    "empty file": (_empty, "empty"),
+    "not HDF5": (_not_hdf5, "not an HDF5 file"),
+    "truncated": (_truncated, "truncated or corrupt|corrupt"),
+    "damaged header": (_damaged_header, "corrupt|not an HDF5"),
+    "damaged data chunk": (_damaged_chunk, "cannot read 'observations'|corrupt"),
+    "ragged arrays": (_arrays_file(rewards=lambda a: a[:-1]), "different lengths"),
+    "NaN values": (_arrays_file(observations=lambda a: np.where(a == 2, np.nan, a)), "NaN or infinite"),
+    "missing key": (_arrays_file(costs=None), "missing array 'costs'"),
+    "negative costs": (_arrays_file(costs=lambda a: a - 1.0), "costs are negative"),
+    "2-D rewards": (_arrays_file(rewards=lambda a: np.stack([a, a], 1)), "'rewards' must be 1-D"),
+    "non-0/1 flags": (_arrays_file(terminals=lambda a: a + 2.0), "terminals"),
+}
+
+
+@pytest.mark.parametrize("case", list(DATA_CASES))
+def test_a_broken_data_file_is_one_clear_error(tmp_path, case):
+    make, match = DATA_CASES[case]
+    path = make(tmp_path / "data.hdf5")
+    before = {p: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    with pytest.raises(DatasetError, match=match) as err:
+        load_episodes(f"file:{path}")
+    assert str(path) in str(err.value)
+    assert {p: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+
+
+def test_malformed_metadata_names_the_file(tmp_path):
+    path = _good(tmp_path / "data.hdf5")
+    with h5py.File(path, "a") as f:
+        f.attrs[METADATA_ATTR] = '{"segments": [1, 2'
+    with pytest.raises(DatasetError, match=f"{path}.*not valid JSON"):
+        read_metadata(path)
+    with h5py.File(path, "a") as f:
+        f.attrs[METADATA_ATTR] = "[1, 2]"
+    with pytest.raises(DatasetError, match="not a JSON object"):
+        read_metadata(path)
+
+
+def test_unknown_sources_ids_and_empty_roles(tmp_path):
+    with pytest.raises(UnknownDatasetError, match="no-such-dataset"):
+        load_episodes("dsrl:no-such-dataset")
+    with pytest.raises(ValueError, match="source"):
+        load_episodes("ftp:somewhere")
+    episodes = load_episodes(f"file:{_good(tmp_path / 'data.hdf5')}")
+    with pytest.raises(ValueError, match=r"episode ids must lie in \[0, 3\)"):
+        select_episodes(episodes, [0, 7])
+    with pytest.raises(ValueError, match="role 'safe' has no transitions"):
+        DualDemoBuffers(episodes, {"safe": [], "unlabeled": [0, 1, 2]})
+
+
+# -- policy files and checkpoints -----------------------------------------------------------------------------
+
+
+def _policy(path: Path) -> Path:
+    return save_policy(path, make_actor(28, 2, hidden_cells=(8,)), env_id="SafetyPointCircle1-v0")
+
+
+def _flip_weights(path: Path) -> None:
+    raw = torch.load(path, weights_only=True)
+    first = next(iter(raw["actor"]))
+    raw["actor"][first] = raw["actor"][first].clone()
+    raw["actor"][first].view(-1)[:64] += 0.5  # weights changed, the stored checksum kept
+    torch.save(raw, path)
+
+
+def _nan_weights(path: Path) -> None:
+    raw = torch.load(path, weights_only=True)
+    raw.pop("weights_sha256")  # as in a file written by an older version, or by hand
+    first = next(iter(raw["actor"]))
+    raw["actor"][first] = raw["actor"][first].clone()
+    raw["actor"][first].view(-1)[0] = float("nan")
+    torch.save(raw, path)
+
+
+@pytest.mark.parametrize(
+    "damage, match",
+    [
+        (_flip_weights, "checksum"),
+        (_nan_weights, "non-finite weights"),
+        (lambda p: p.write_bytes(p.read_bytes()[:500]), "not a policy checkpoint"),
+        (lambda p: torch.save({"weights": torch.zeros(2)}, p), "no 'actor' state dict"),
+        (lambda p: p.unlink(), "no such policy file"),
+    ],
+)
+def test_a_damaged_policy_file_is_refused(tmp_path, damage, match):
+    path = _policy(tmp_path / "policy.pt")
+    damage(path)
+    with pytest.raises(PolicyFileError, match=match):
+        load_policy(path)
+
+
+def test_a_policy_for_another_task_is_refused(tmp_path):
+    with pytest.raises(PolicyFileError, match="SafetyHalfCheetahVelocity-v1"):
+        load_policy(_policy(tmp_path / "p.pt"), env_id="SafetyHalfCheetahVelocity-v1")
+
+
+def test_a_damaged_training_checkpoint_is_refused(tmp_path):
+    path = tmp_path / "state.pt"
+    save_checkpoint(path, {"step": 1, "w": torch.randn(1000)})
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match=str(path)):
+        load_checkpoint(path)
+
+
+def test_inspect_fails_on_a_damaged_finished_rollout_file(tmp_path):
+    from spoil_torchrl.eval import RolloutWriter
+
+    path = tmp_path / "rollouts.mcap"
+    with RolloutWriter(path, cost_threshold=1.0) as writer:
+        for _ in range(3):
+            for t in range(50):
+                writer.add_step([0.1 * t] * 4, [0.0], reward=1.0, cost=0.0)
+            writer.end_episode()
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    proc = subprocess.run(
+        [sys.executable, "-m", "spoil_torchrl.inspect", str(path)], capture_output=True, text=True, cwd=ROOT
+    )
+    assert proc.returncode == 1 and "finished by its writer but is damaged" in proc.stderr
+
+
+# -- settings -------------------------------------------------------------------------------------------------
+
+SETTING_CASES = [
+    ({"algo": {"kappa": 1.5}}, "algo.kappa = 1.5"),
+    ({"algo": {"kappa": 0.0}}, "algo.kappa = 0.0"),
+    ({"algo": {"gamma": 1.0}}, "algo.gamma = 1.0"),
+    ({"algo": {"nu_lr": -1e-3}}, "algo.nu_lr = -0.001"),
+    ({"algo": {"discriminator": {"lr": 0.0}}}, "algo.discriminator.lr = 0.0"),
+    (
+        {"algo": {"discriminator": {"gradient_penalty": {"safe": -1.0}}}},
+        "algo.discriminator.gradient_penalty",
+    ),
+    ({"algo": {"hidden_cells": [256, 0]}}, "algo.hidden_cells"),
+    ({"algo": {"alpha": "big"}}, "algo.alpha = 'big'"),
+    ({"algo": {"eta": 1.2}}, "algo.eta = 1.2"),
+    ({"train": {"discriminator_steps": 0}}, "train.discriminator_steps = 0"),
+    ({"train": {"lr": float("nan")}}, "train.lr = nan"),
+    ({"train": {"batch_size": 12.5}}, "train.batch_size = 12.5"),
+    ({"threads": 0}, "threads = 0"),
+    ({"seed": -1}, "seed = -1"),
+]
+
+
+@pytest.mark.parametrize("settings, match", SETTING_CASES)
+def test_a_bad_setting_is_named(settings, match):
+    with pytest.raises(SettingsError, match=match.replace("[", r"\[").replace(".", r"\.")):
+        check_settings({"seed": 0, "threads": 1, **settings})
+
+
+# -- through the recipe: one line on stderr, exit status 2, nothing outside the run directory touched ----------
+
+
+def _snapshot(folder: Path) -> dict[str, str]:
+    return {
+        str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+@pytest.mark.parametrize(
+    "overrides, match",
+    [
+        (["algo.kappa=2"], "algo.kappa = 2"),
+        (["train.discriminator_steps=0"], "train.discriminator_steps = 0"),
+        (["threads=0"], "threads = 0"),
+        (["resume=maybe"], "resume must be one of"),
+        (["algo.name=sac"], "has no builder"),
+        (["DATA=negative"], "costs are negative"),
+        (["DATA=truncated"], "truncated or corrupt|corrupt"),
+        (["RUN=existing"], "already holds a run"),
+        (["RUN=blocked-checkpoints"], "cannot write checkpoints"),
+    ],
+)
+def test_the_recipe_reports_user_errors_in_one_line(tmp_path, overrides, match):
+    data_dir = tmp_path / "data"
+    data_dir.mkdir()
+    data = _good(data_dir / "ok.hdf5")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    if "DATA=negative" in overrides:
+        data = _arrays_file(costs=lambda a: a - 1.0)(data_dir / "negative.hdf5")
+    if "DATA=truncated" in overrides:
+        data = _truncated(data_dir / "truncated.hdf5")
+    if "RUN=existing" in overrides:
+        (run_dir / "results.json").write_text(json.dumps({"status": "finished"}))
+    if "RUN=blocked-checkpoints" in overrides:
+        (run_dir / "checkpoints").write_text("a file where the folder should be")
+    overrides = [o for o in overrides if not o.startswith(("DATA=", "RUN="))]
+    before = _snapshot(data_dir)
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes" / "spoildice_dsrl.py"),
+        "preset=smoke",
+        "progress=false",
+        f"dataset.source=file:{data}",
+        f"hydra.run.dir={run_dir}",
+        *overrides,
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert len(errors) == 1 and __import__("re").search(match, errors[0]), proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert _snapshot(data_dir) == before
+    assert not (run_dir / "run.lock").exists()

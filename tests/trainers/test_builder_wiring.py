@@ -1,0 +1,66 @@
+"""Which data each builder fits its pre-training on: wiring mistakes that leave every shape right."""
+
+from __future__ import annotations
+
+import torch
+
+from spoil_torchrl.data import DualDemoBuffers, load_episodes
+from spoil_torchrl.trainers import algorithms
+from spoil_torchrl.trainers.algorithms import ALGORITHMS
+
+
+def _buffers(dataset) -> DualDemoBuffers:
+    episodes = load_episodes(f"file:{dataset}")
+    # safe: safe-high 0-2; performant: unsafe-high 6-8; unlabeled: all twelve (ids by policy type)
+    roles = {"safe": torch.arange(0, 3), "performant": torch.arange(6, 9), "unlabeled": torch.arange(12)}
+    return DualDemoBuffers(episodes, roles, batch_size=128, seed=0)
+
+
+def _spoildice_cfg(kappa: float) -> dict:
+    return {
+        "distribution": "normal",
+        "hidden_cells": [16],
+        "gamma": 0.99,
+        "kappa": kappa,
+        "nu_gradient_penalty": 0.0,
+        "init_lagrange": 0.0,
+        "nu_lr": 1e-3,
+        "lagrange_lr": 1e-3,
+        "actor_lr": 1e-3,
+        "discriminator": {
+            "hidden_cells": [32],
+            "gradient_penalty": {"performant": 0.0, "safe": 0.0},
+            "lr": 3e-3,
+            "steps": 200,
+        },
+    }
+
+
+def test_spoildice_fits_its_support_cut_on_the_safe_demonstrations(tiny_pc1_dataset):
+    # Eq. (13): the cut is the kappa-quantile of C_S's log-ratio over D_S, so it keeps 1 - kappa of D_S
+    # (ties aside); a cut fitted on D_U would keep 1 - kappa of D_U and far more of D_S, which C_S ranks high.
+    buffers = _buffers(tiny_pc1_dataset)
+    ALGORITHMS["spoildice"](_spoildice_cfg(kappa=0.5), buffers, 28, 2, progress=False)
+    unlabeled = buffers["unlabeled"].storage[:]
+    kept = unlabeled["safe_support"].reshape(-1).bool()
+    in_safe = torch.isin(unlabeled["episode"].reshape(-1), torch.arange(0, 3))
+    assert 0.5 <= kept[in_safe].float().mean() < 0.55
+    assert kept.float().mean() < 0.5  # D_U holds much that C_S ranks below the safe median
+
+
+def test_demodice_s_trains_its_discriminator_against_the_safe_demonstrations(tiny_pc1_dataset, monkeypatch):
+    calls = []
+    real = algorithms.train_discriminators
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(algorithms, "train_discriminators", spy)
+    cfg = _spoildice_cfg(kappa=0.01) | {"alpha": 0.1, "nu_gradient_penalty": 1e-4}
+    cfg["discriminator"] = cfg["discriminator"] | {"steps": 2}
+    ALGORITHMS["demodice_s"](cfg, _buffers(tiny_pc1_dataset), 28, 2, progress=False)
+    assert len(calls) == 1 and calls[0]["positives"] == ("performant",) and calls[0]["against"] == "safe"
+    calls.clear()
+    ALGORITHMS["demodice_u"](cfg, _buffers(tiny_pc1_dataset), 28, 2, progress=False)
+    assert len(calls) == 1 and calls[0].get("against", "unlabeled") == "unlabeled"
