@@ -4,6 +4,7 @@
     python recipes/spoildice_dsrl.py algo=bc seed=1
     python recipes/spoildice_dsrl.py preset=smoke        # plumbing check, well under a minute
     python recipes/spoildice_dsrl.py preset=paper        # Table J: 1M iterations, lr 3e-5
+    python recipes/spoildice_dsrl.py hydra.run.dir=<run dir> resume=true   # continue a killed run
 
 Reads like Algorithm 1 of the paper:
 
@@ -16,9 +17,10 @@ Reads like Algorithm 1 of the paper:
 4. Output: the run directory holds ``config.yaml`` (resolved), ``logs/`` (TorchRL logger), ``checkpoints/``,
    ``results.json`` (every evaluation, raw and normalised, and the paper's aggregate; for DICE methods the
    diagnostics of ``spoil_torchrl.eval.dice_diagnostics`` at every evaluation and a text report at the end)
-   and ``rollouts.mcap``
-   (every evaluation episode; ``python -m spoil_torchrl.inspect <file>``). ``results.json`` is rewritten after
-   every evaluation and the MCAP file is flushed after every episode, so an interrupted run keeps both.
+   and ``rollouts.mcap`` (every evaluation episode; ``python -m spoil_torchrl.inspect <file>``).
+   ``results.json`` is rewritten after every evaluation and the MCAP file is flushed after every episode, so an
+   interrupted run keeps both; ``checkpoints/training_state.pt`` lets it continue exactly (``resume=true``).
+   A start never overwrites a run: the directory is claimed first (``spoil_torchrl.trainers.run_dir``).
 """
 
 from __future__ import annotations
