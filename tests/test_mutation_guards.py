@@ -117,3 +117,171 @@ def test_episode_metrics_reads_a_trailing_singleton_mask_and_names_a_bad_row():
     td["mask"] = torch.ones(2, 3, 2, dtype=torch.bool)
     with pytest.raises(ValueError, match=r"shape \[episodes, steps\]; got \[2, 3, 2\]"):
         episode_metrics(td[:, :], cost_threshold=1.0)
+
+
+# -- objectives -----------------------------------------------------------------------------------------------
+
+
+def test_interpolate_returns_points_on_each_segment():
+    from spoil_torchrl.objectives.functional import interpolate
+
+    torch.manual_seed(0)
+    a, b = torch.randn(64, 3) + 5.0, torch.randn(64, 3) - 5.0
+    x = interpolate(a, b)
+    t = (x - b) / (a - b)  # the same t in [0, 1] for every coordinate of a row
+    assert torch.allclose(t, t[:, :1].expand_as(t), atol=1e-5)
+    assert bool(((t >= 0) & (t <= 1)).all()) and t[:, 0].std() > 0.1
+    assert x.dtype == a.dtype
+    double = interpolate(a.double(), b.double())
+    assert double.dtype == torch.float64
+
+
+def _linear_nu(weight):
+    from tensordict.nn import TensorDictModule
+
+    from spoil_torchrl.modules import make_value_network
+
+    nu = make_value_network(5, hidden_cells=())
+    with torch.no_grad():
+        for p in nu.parameters():
+            p.zero_()
+        next(p for p in nu.parameters() if p.ndim == 2)[0, 0] = weight
+    assert isinstance(nu, TensorDictModule)
+    return nu
+
+
+def test_gradient_penalty_forms():
+    from spoil_torchrl.objectives.functional import gradient_penalty
+
+    norms = torch.tensor([1.0, 3.0])
+    assert gradient_penalty(norms, target=None).item() == 5.0  # E|g|^2
+    assert gradient_penalty(norms, target=1.0).item() == 2.0  # E(|g| - 1)^2
+
+
+@pytest.mark.parametrize("name", ["spoildice", "demodice", "safedice"])
+def test_the_nu_penalty_adds_c_times_the_squared_gradient_norm(name, batch):
+    # a linear nu with |grad| = 3 everywhere: loss_nu(c) - loss_nu(0) = c * 9
+    from spoil_torchrl.objectives import DemoDICELoss, SafeDICELoss, SpoilDICELoss
+
+    make = {
+        "spoildice": lambda nu, c: SpoilDICELoss(nu, gradient_penalty=c),
+        "demodice": lambda nu, c: DemoDICELoss(
+            nu, gradient_penalty=c, regularization="safe", reward="log_ratio_performant"
+        ),
+        "safedice": lambda nu, c: SafeDICELoss(nu, alpha=0.5, gradient_penalty=c),
+    }[name]
+    if name == "safedice":
+        batch["unlabeled", "log_ratio_nonpreferred"] = torch.randn(32, 1)
+    with_penalty = make(_linear_nu(3.0), 0.5)(batch.clone())["loss_nu"]
+    without = make(_linear_nu(3.0), 0.0)(batch.clone())["loss_nu"]
+    torch.testing.assert_close(with_penalty - without, torch.tensor(0.5 * 9.0), rtol=1e-4, atol=1e-4)
+
+
+def test_documented_defaults_of_the_losses():
+    from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
+    from spoil_torchrl.objectives import (
+        COptiDICELoss,
+        DemoDICELoss,
+        DWBCLoss,
+        PUDiscriminatorLoss,
+        SafeDICELoss,
+        SpoilDICELoss,
+    )
+
+    def nu():
+        return make_value_network(5, hidden_cells=(8,))
+
+    spoil = SpoilDICELoss(nu())
+    assert (spoil.gamma, spoil.gradient_penalty, spoil.lagrange.item()) == (0.99, 1e-4, 0.0)
+    demo = DemoDICELoss(nu())
+    assert (demo.gamma, demo.gradient_penalty, demo.alpha) == (0.99, 1e-4, 0.1)
+    safe = SafeDICELoss(nu(), alpha=0.0)  # alpha = 0 is allowed: no correction from D_N
+    assert (safe.gamma, safe.gradient_penalty, safe.reward_mean, safe.reward_std) == (0.99, 1e-6, 0.0, 1.0)
+    cop = COptiDICELoss(nu(), nu(), cost_limit=0.1)
+    assert (cop.gamma, cop.gradient_penalty, cop.alpha, cop.cost_ub_epsilon) == (0.99, 1e-4, 0.01, 0.01)
+    assert (cop.lagrange.item(), cop.tau.item()) == pytest.approx((1.0, 1.0))
+    assert PUDiscriminatorLoss(make_discriminator(5, 2, hidden_cells=(8,))).gradient_penalty == 10.0
+    dwbc = DWBCLoss(
+        make_actor(5, 2, hidden_cells=(8,)),
+        make_discriminator(5, 2, hidden_cells=(8,), extra_inputs={"policy_log_prob": 1}),
+    )
+    assert (dwbc.alpha, dwbc.eta, dwbc.offset) == (7.5, 0.5, 1.0)  # reference offsets on by default
+
+
+def test_loss_argument_boundaries():
+    from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
+    from spoil_torchrl.objectives import COptiDICELoss, DWBCLoss, PUDiscriminatorLoss, per_step_cost_limit
+
+    disc = make_discriminator(5, 2, hidden_cells=(8,))
+    with pytest.raises(ValueError, match="class_prior"):
+        PUDiscriminatorLoss(disc, class_prior=0.0)
+    dwbc_disc = make_discriminator(5, 2, hidden_cells=(8,), extra_inputs={"policy_log_prob": 1})
+    with pytest.raises(ValueError, match="eta"):
+        DWBCLoss(make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, eta=1.0)
+    # the expert weight alpha - eta / (D (1 - D)) - 1 must stay >= 0 at D = 0.1: alpha >= 0.5 / 0.09 + 1
+    bound = 0.5 / (0.1 * 0.9) + 1.0
+    DWBCLoss(make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, alpha=bound + 1e-6)
+    with pytest.raises(ValueError, match=f"use alpha >= {bound:.3f}"):
+        DWBCLoss(make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, alpha=bound - 0.01)
+    DWBCLoss(
+        make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, alpha=bound - 1.0 + 1e-6, reference_offsets=False
+    )
+    with pytest.raises(TypeError, match="probabilistic actor"):
+        DWBCLoss(disc, dwbc_disc)
+    assert per_step_cost_limit(0.0, 1, 0.99) == 0.0 and per_step_cost_limit(10.0, 1, 0.5) == pytest.approx(
+        5.0
+    )
+    with pytest.raises(ValueError, match="gamma"):
+        COptiDICELoss(
+            make_value_network(5, hidden_cells=(8,)),
+            make_value_network(5, hidden_cells=(8,)),
+            cost_limit=0.1,
+            gamma=0.0,
+        )
+
+
+def test_dice_transitions_accepts_one_transition_and_refuses_flat_flags():
+    from spoil_torchrl.objectives.keys import dice_transitions
+
+    one = TensorDict(
+        {
+            "unlabeled": TensorDict(
+                {
+                    "observation": torch.randn(1, 3),
+                    "next": {
+                        "observation": torch.randn(1, 3),
+                        "terminated": torch.zeros(1, 1, dtype=torch.bool),
+                    },
+                },
+                [1],
+            ),
+            "init": TensorDict({"observation": torch.randn(1, 3)}, [1]),
+        },
+        [],
+    )
+    keys = dict(
+        role="unlabeled",
+        init="init",
+        state_keys=["observation"],
+        next_key="next",
+        terminated_key=("next", "terminated"),
+        loss_name="X",
+    )
+    out = dice_transitions(one, **keys)
+    assert out.batch_shape == torch.Size([1]) and out.init["observation"].shape == (1, 3)
+    one["unlabeled", "next", "terminated"] = torch.zeros(1, 1, dtype=torch.bool).squeeze(-1)
+    with pytest.raises(ValueError, match="trailing dimension of 1"):
+        dice_transitions(one, **keys)
+
+
+def test_log_ratio_module_is_a_frozen_copy(batch):
+    from spoil_torchrl.modules import make_discriminator
+    from spoil_torchrl.objectives import PUDiscriminatorLoss
+
+    loss = PUDiscriminatorLoss(make_discriminator(5, 2, hidden_cells=(8,)))
+    frozen = loss.log_ratio_module()
+    before = frozen(batch["unlabeled"].clone())["log_ratio_performant"]
+    with torch.no_grad():
+        for p in loss.parameters():
+            p.add_(1.0)  # the discriminator trains on
+    torch.testing.assert_close(frozen(batch["unlabeled"].clone())["log_ratio_performant"], before)

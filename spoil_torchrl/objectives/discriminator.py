@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from collections.abc import Callable
@@ -217,10 +218,17 @@ class PUDiscriminatorLoss(LossModule):
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
 
+    def frozen_network(self) -> TensorDictModule:
+        """A copy of the discriminator with its current weights, detached from this loss: training the loss
+        further does not change it. (TorchRL's ``get_stateful_net(copy=True)`` copies the module but puts the
+        loss's own parameters into it, so it would follow the training.)"""
+        net = copy.deepcopy(self.get_stateful_net("discriminator_network", copy=True))
+        return net.requires_grad_(False)
+
     def log_ratio_module(self, out_key: NestedKey = "log_ratio_performant") -> LogRatio:
-        """A frozen copy of the trained discriminator writing :math:`\\log \\hat r` (Eq. 18) at ``out_key``,
-        with the PU conversion applied when ``class_prior`` is set."""
-        net = self.get_stateful_net("discriminator_network", copy=True)
+        """A frozen copy of the trained discriminator (:meth:`frozen_network`) writing :math:`\\log \\hat r`
+        (Eq. 18) at ``out_key``, with the PU conversion applied when ``class_prior`` is set."""
+        net = self.frozen_network()
         fn = (
             None
             if self.class_prior is None

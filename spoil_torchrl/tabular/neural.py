@@ -161,9 +161,9 @@ def train_tabular_spoildice(
             record(f"discriminator_{role}", out, step)
 
     # r_P, r_S from Eq. (18); the support indicator from Eq. (13); annotate D_U once.
-    ratio_p = LogRatio(disc_losses["performant"].get_stateful_net("discriminator_network", copy=True))
+    ratio_p = LogRatio(disc_losses["performant"].frozen_network())
     support = SupportEstimator(
-        disc_losses["safe"].get_stateful_net("discriminator_network", copy=True), kappa=cfg.kappa
+        disc_losses["safe"].frozen_network(), kappa=cfg.kappa
     ).fit(datasets["safe"])
     annotate(buffers["unlabeled"], ratio_p)
     annotate(buffers["unlabeled"], support)

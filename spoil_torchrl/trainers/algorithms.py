@@ -226,8 +226,7 @@ def _fit_support(
     loss: PUDiscriminatorLoss, buffers: DualDemoBuffers, role: str, kappa: float, out_key: str
 ) -> SupportEstimator:
     """Eq. (13) on ``role``'s discriminator: the kappa-quantile cut of its log-ratio over ``role``'s data."""
-    net = loss.get_stateful_net("discriminator_network", copy=True)
-    return SupportEstimator(net, kappa=kappa, out_key=out_key).fit(buffers[role].storage[:])
+    return SupportEstimator(loss.frozen_network(), kappa=kappa, out_key=out_key).fit(buffers[role].storage[:])
 
 
 def build_fbc(
