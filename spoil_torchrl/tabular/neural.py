@@ -162,9 +162,7 @@ def train_tabular_spoildice(
 
     # r_P, r_S from Eq. (18); the support indicator from Eq. (13); annotate D_U once.
     ratio_p = LogRatio(disc_losses["performant"].frozen_network())
-    support = SupportEstimator(
-        disc_losses["safe"].frozen_network(), kappa=cfg.kappa
-    ).fit(datasets["safe"])
+    support = SupportEstimator(disc_losses["safe"].frozen_network(), kappa=cfg.kappa).fit(datasets["safe"])
     annotate(buffers["unlabeled"], ratio_p)
     annotate(buffers["unlabeled"], support)
 
