@@ -285,3 +285,106 @@ def test_log_ratio_module_is_a_frozen_copy(batch):
         for p in loss.parameters():
             p.add_(1.0)  # the discriminator trains on
     torch.testing.assert_close(frozen(batch["unlabeled"].clone())["log_ratio_performant"], before)
+
+
+def test_second_pass_boundaries():
+    """Tests written against the survivors of the second mutation run."""
+    from spoil_torchrl.modules import make_actor, make_discriminator
+    from spoil_torchrl.objectives import DWBCLoss, PUDiscriminatorLoss, per_step_cost_limit
+
+    dwbc_disc = make_discriminator(5, 2, hidden_cells=(8,), extra_inputs={"policy_log_prob": 1})
+    with pytest.raises(ValueError, match="eta must lie in"):
+        DWBCLoss(make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, eta=1.0, alpha=100.0)
+    bound = 0.5 / (0.1 * 0.9) + 1.0
+    DWBCLoss(make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, alpha=bound)  # exactly at the bound: allowed
+    with pytest.raises(ValueError, match=r"\(D \(1 - D\)\) - 1 would be negative"):
+        DWBCLoss(make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, alpha=1.0)
+    with pytest.raises(ValueError, match=r"\(D \(1 - D\)\) would be negative"):
+        DWBCLoss(make_actor(5, 2, hidden_cells=(8,)), dwbc_disc, alpha=1.0, reference_offsets=False)
+    with pytest.raises(ValueError, match="gamma"):
+        per_step_cost_limit(1.0, 10, 0.0)
+    disc = make_discriminator(5, 2, hidden_cells=(8,))
+    assert PUDiscriminatorLoss(disc, class_prior=0.3, reduction="mean").class_prior == 0.3
+    assert PUDiscriminatorLoss(disc, unlabeled="safe").tensor_keys.unlabeled == "safe"
+    frozen = PUDiscriminatorLoss(disc).frozen_network()
+    assert not any(p.requires_grad for p in frozen.parameters())
+
+
+def test_a_nu_penalty_of_exactly_one_is_applied(batch):
+    from spoil_torchrl.objectives import SpoilDICELoss
+
+    with_penalty = SpoilDICELoss(_linear_nu(3.0), gradient_penalty=1.0)(batch.clone())["loss_nu"]
+    without = SpoilDICELoss(_linear_nu(3.0), gradient_penalty=0.0)(batch.clone())["loss_nu"]
+    torch.testing.assert_close(with_penalty - without, torch.tensor(9.0), rtol=1e-4, atol=1e-4)
+
+
+def test_dice_transitions_refuses_an_empty_role_or_no_initial_states():
+    from spoil_torchrl.objectives.keys import dice_transitions
+
+    def batch(n, n_init):
+        role = TensorDict(
+            {
+                "observation": torch.randn(n, 3),
+                "next": {"observation": torch.randn(n, 3), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
+            },
+            [n],
+        )
+        return TensorDict(
+            {"unlabeled": role, "init": TensorDict({"observation": torch.randn(n_init, 3)}, [n_init])}, []
+        )
+
+    keys = dict(
+        role="unlabeled",
+        init="init",
+        state_keys=["observation"],
+        next_key="next",
+        terminated_key=("next", "terminated"),
+        loss_name="X",
+    )
+    for n, n_init in ((0, 4), (4, 0)):
+        with pytest.raises(ValueError, match="X needs at least one transition"):
+            dice_transitions(batch(n, n_init), **keys)
+
+
+def test_seed_defaults_are_zero():
+    kwargs = dict(n_safe=4, performance=0.5, n_performant=4, safeness=0.25, n_unlabeled=7)
+    assert all(
+        torch.equal(controlled_mix(_pools(), **kwargs)[k], controlled_mix(_pools(), **kwargs, seed=0)[k])
+        for k in ("safe", "performant", "unlabeled")
+    )
+    safe, unsafe = torch.arange(10), torch.arange(100, 120)
+    assert torch.equal(corrupt(safe, unsafe, 0.3), corrupt(safe, unsafe, 0.3, seed=0))
+
+
+def test_feasible_return_tolerates_round_off_relative_to_the_threshold():
+    from spoil_torchrl.eval import feasible_return
+
+    reward = torch.ones(2, dtype=torch.float64)
+    # cumulative cost 25 + 1e-8: above 25 by less than 1e-9 * 25 relative round-off -> not a violation
+    cost = torch.tensor([25.0, 1e-8 * 0.5], dtype=torch.float64)
+    assert feasible_return(reward, cost, 25.0) == 2.0
+    cost = torch.tensor([25.0, 1e-7], dtype=torch.float64)  # beyond the round-off: the second step violates
+    assert feasible_return(reward, cost, 25.0) == 1.0
+
+
+def test_one_step_episodes_have_a_two_dimensional_mask():
+    td = TensorDict(
+        {
+            "next": {"reward": torch.ones(2, 1), "cost": torch.zeros(2, 1)},
+            "mask": torch.ones(2, 1, dtype=torch.bool),
+        },
+        [2, 1],
+    )
+    assert episode_metrics(td, cost_threshold=1.0)["length"].tolist() == [1, 1]
+
+
+def test_feasible_return_round_off_edges():
+    from spoil_torchrl.eval import feasible_return
+    from spoil_torchrl.eval.metrics import ROUND_OFF
+
+    reward = torch.ones(1, dtype=torch.float64)
+    edge = 25.0 + ROUND_OFF * 25.0  # exactly at the tolerance: not a violation
+    assert feasible_return(reward, torch.tensor([edge], dtype=torch.float64), 25.0) == 1.0
+    # below a threshold of 1.5 the tolerance is 1.5e-9 (relative), not 2e-9
+    cost = torch.tensor([1.5 + 1.7e-9], dtype=torch.float64)
+    assert feasible_return(reward, cost, 1.5) == 0.0
