@@ -388,3 +388,12 @@ def test_feasible_return_round_off_edges():
     # below a threshold of 1.5 the tolerance is 1.5e-9 (relative), not 2e-9
     cost = torch.tensor([1.5 + 1.7e-9], dtype=torch.float64)
     assert feasible_return(reward, cost, 1.5) == 0.0
+
+
+def test_sums_and_means_are_taken_in_double_precision():
+    from spoil_torchrl.eval import episode_cost, episode_return
+
+    # in float32, 1e8 + 1 rounds to 1e8: a float32 sum of these steps would be 0
+    steps = torch.tensor([1e8, 1.0, -1e8], dtype=torch.float32)
+    assert episode_return(steps) == 1.0 and episode_cost(steps.abs() - torch.tensor([0.0, 0.0, 2e8])) == 1.0
+    assert mean_of_last(steps, last=3) == pytest.approx(1.0 / 3.0)
