@@ -397,3 +397,29 @@ def test_sums_and_means_are_taken_in_double_precision():
     steps = torch.tensor([1e8, 1.0, -1e8], dtype=torch.float32)
     assert episode_return(steps) == 1.0 and episode_cost(steps.abs() - torch.tensor([0.0, 0.0, 2e8])) == 1.0
     assert mean_of_last(steps, last=3) == pytest.approx(1.0 / 3.0)
+
+
+def test_dice_transitions_keeps_a_two_dimensional_batch_shape():
+    from spoil_torchrl.objectives.keys import dice_transitions
+
+    role = TensorDict(
+        {
+            "observation": torch.randn(2, 3, 4),
+            "next": {
+                "observation": torch.randn(2, 3, 4),
+                "terminated": torch.zeros(2, 3, 1, dtype=torch.bool),
+            },
+        },
+        [2, 3],
+    )
+    batch = TensorDict({"unlabeled": role, "init": TensorDict({"observation": torch.randn(5, 4)}, [5])}, [])
+    out = dice_transitions(
+        batch,
+        role="unlabeled",
+        init="init",
+        state_keys=["observation"],
+        next_key="next",
+        terminated_key=("next", "terminated"),
+        loss_name="X",
+    )
+    assert out.batch_shape == torch.Size([2, 3]) and out.current["observation"].shape == (6, 4)
