@@ -121,6 +121,16 @@ def test_episode_metrics_reads_a_trailing_singleton_mask_and_names_a_bad_row():
 
 # -- objectives -----------------------------------------------------------------------------------------------
 
+#: The keys of a flat DICE batch, for :func:`spoil_torchrl.objectives.keys.dice_transitions`.
+DICE_KEYS = dict(
+    role="unlabeled",
+    init="init",
+    state_keys=["observation"],
+    next_key="next",
+    terminated_key=("next", "terminated"),
+    loss_name="X",
+)
+
 
 def test_interpolate_returns_points_on_each_segment():
     from spoil_torchrl.objectives.functional import interpolate
@@ -259,14 +269,7 @@ def test_dice_transitions_accepts_one_transition_and_refuses_flat_flags():
         },
         [],
     )
-    keys = dict(
-        role="unlabeled",
-        init="init",
-        state_keys=["observation"],
-        next_key="next",
-        terminated_key=("next", "terminated"),
-        loss_name="X",
-    )
+    keys = DICE_KEYS
     out = dice_transitions(one, **keys)
     assert out.batch_shape == torch.Size([1]) and out.init["observation"].shape == (1, 3)
     one["unlabeled", "next", "terminated"] = torch.zeros(1, 1, dtype=torch.bool).squeeze(-1)
@@ -333,14 +336,7 @@ def test_dice_transitions_refuses_an_empty_role_or_no_initial_states():
             {"unlabeled": role, "init": TensorDict({"observation": torch.randn(n_init, 3)}, [n_init])}, []
         )
 
-    keys = dict(
-        role="unlabeled",
-        init="init",
-        state_keys=["observation"],
-        next_key="next",
-        terminated_key=("next", "terminated"),
-        loss_name="X",
-    )
+    keys = DICE_KEYS
     for n, n_init in ((0, 4), (4, 0)):
         with pytest.raises(ValueError, match="X needs at least one transition"):
             dice_transitions(batch(n, n_init), **keys)
@@ -413,13 +409,5 @@ def test_dice_transitions_keeps_a_two_dimensional_batch_shape():
         [2, 3],
     )
     batch = TensorDict({"unlabeled": role, "init": TensorDict({"observation": torch.randn(5, 4)}, [5])}, [])
-    out = dice_transitions(
-        batch,
-        role="unlabeled",
-        init="init",
-        state_keys=["observation"],
-        next_key="next",
-        terminated_key=("next", "terminated"),
-        loss_name="X",
-    )
+    out = dice_transitions(batch, **DICE_KEYS)
     assert out.batch_shape == torch.Size([2, 3]) and out.current["observation"].shape == (6, 4)

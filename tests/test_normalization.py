@@ -9,7 +9,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from spoil_torchrl.data import fit_observation_normalizer, standardize_observations
 from spoil_torchrl.experts import load_policy, save_policy
-from spoil_torchrl.experts.policies import PolicyFileError
+from spoil_torchrl.experts.policies import PolicyFileError, weights_digest
 from spoil_torchrl.modules import (
     ObservationNormalizer,
     make_actor,
@@ -98,6 +98,10 @@ def test_policy_without_normalizer_still_loads_and_corrupt_statistics_are_refuse
     raw = torch.load(path, weights_only=True)
     scale_key = next(k for k in raw["actor"] if k.endswith("scale"))
     raw["actor"][scale_key][0] = 0.0
+    torch.save(raw, path)
+    with pytest.raises(PolicyFileError, match="checksum"):  # changed after saving: damaged
+        load_policy(path)
+    raw["weights_sha256"] = weights_digest(raw["actor"])  # written that way: the statistics themselves are bad
     torch.save(raw, path)
     with pytest.raises(PolicyFileError, match="observation statistics are invalid.*positive"):
         load_policy(path)
