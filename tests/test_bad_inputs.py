@@ -232,6 +232,11 @@ SETTING_CASES = [
     ({"train": {"lr": float("nan")}}, "train.lr = nan"),
     ({"train": {"batch_size": 12.5}}, "train.batch_size = 12.5"),
     ({"threads": 0}, "threads = 0"),
+    ({"dataset": {"n_safe": 0}}, "dataset.n_safe = 0"),
+    ({"dataset": {"safeness": 1.5}}, "dataset.safeness = 1.5"),
+    ({"dataset": {"n_unlabeled": -5}}, "dataset.n_unlabeled = -5"),
+    ({"dataset": {"cost_threshold": -1.0}}, "dataset.cost_threshold = -1.0"),
+    ({"dataset": {"scheme": "replay"}}, "dataset.scheme = 'replay'"),
     ({"seed": -1}, "seed = -1"),
 ]
 

@@ -2,7 +2,8 @@
 
 :func:`check_settings` walks the resolved configuration of the main recipe and checks every value whose
 meaning is fixed by its name (learning rates, discount factors, quantiles, step counts, penalty coefficients,
-layer sizes, ...) wherever it appears, plus the top-level keys. Every problem is a :class:`SettingsError`
+layer sizes, ...) wherever it appears in ``train`` and ``algo``, the dataset's sizes and shares, and the
+top-level keys. Every problem is a :class:`SettingsError`
 naming the dotted key, the value and what is expected.
 """
 
@@ -67,6 +68,28 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
 }
 
 
+def _unit(value: Any) -> bool:
+    return _number(value) and 0.0 <= value <= 1.0
+
+
+def _optional(check: Callable[[Any], bool]) -> Callable[[Any], bool]:
+    return lambda value: value is None or check(value)
+
+
+#: key name -> (check, what is expected) for the ``dataset`` section.
+DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "n_safe": (_positive_int, "an integer >= 1"),
+    "n_performant": (_positive_int, "an integer >= 1"),
+    "n_unlabeled": (_optional(_positive_int), "null or an integer >= 1"),
+    "n_nonpreferred": (_optional(_positive_int), "null or an integer >= 1"),
+    "performance": (_unit, "a share in [0, 1]"),
+    "safeness": (_unit, "a share in [0, 1]"),
+    "return_quantile": (_unit, "a quantile in [0, 1]"),
+    "cost_threshold": (_optional(_non_negative), "null or a number >= 0"),
+    "scheme": (lambda v: v in ("ilsp", "controlled"), "ilsp or controlled"),
+}
+
+
 def _rule(key: str) -> tuple[Callable[[Any], bool], str] | None:
     if key in RULES:
         return RULES[key]
@@ -107,3 +130,7 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
             rule = _rule(key)
             if rule is not None and not rule[0](value):
                 raise SettingsError(f"{name} = {value!r}: expected {rule[1]}")
+    for key, value in (cfg.get("dataset") or {}).items():
+        rule = DATASET_RULES.get(key)
+        if rule is not None and not rule[0](value):
+            raise SettingsError(f"dataset.{key} = {value!r}: expected {rule[1]}")
