@@ -204,8 +204,12 @@ def test_inspect_fails_on_a_damaged_finished_rollout_file(tmp_path):
             for t in range(50):
                 writer.add_step([0.1 * t] * 4, [0.0], reward=1.0, cost=0.0)
             writer.end_episode()
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:  # damage the middle of the second chunk (an episode's compressed messages)
+        chunk = make_reader(f).get_summary().chunk_indexes[1]
     data = bytearray(path.read_bytes())
-    data[len(data) // 2] ^= 0xFF
+    data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0xFF
     path.write_bytes(bytes(data))
     proc = subprocess.run(
         [sys.executable, "-m", "spoil_torchrl.inspect", str(path)], capture_output=True, text=True, cwd=ROOT
