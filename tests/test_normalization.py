@@ -101,7 +101,8 @@ def test_policy_without_normalizer_still_loads_and_corrupt_statistics_are_refuse
     torch.save(raw, path)
     with pytest.raises(PolicyFileError, match="checksum"):  # changed after saving: damaged
         load_policy(path)
-    raw["weights_sha256"] = weights_digest(raw["actor"])  # written that way: the statistics themselves are bad
+    # written that way (checksum and all): the statistics themselves are bad
+    raw["weights_sha256"] = weights_digest(raw["actor"])
     torch.save(raw, path)
     with pytest.raises(PolicyFileError, match="observation statistics are invalid.*positive"):
         load_policy(path)
