@@ -1,4 +1,4 @@
-"""Loading DSRL-layout HDF5 files: episodes, TED keys and every bad input (issue 4)."""
+"""Loading DSRL-layout HDF5 files: episodes, TED keys and every bad input."""
 
 from __future__ import annotations
 
