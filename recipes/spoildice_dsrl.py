@@ -59,6 +59,7 @@ from spoil_torchrl.eval.dice_diagnostics import (
 from spoil_torchrl.eval.evaluator import METRICS
 from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.experts import save_policy
+from spoil_torchrl.files import write_atomic
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
@@ -98,9 +99,7 @@ def _json_safe(value):
 
 def write_json(path: Path, payload: dict) -> None:
     """Write ``payload`` atomically (a reader never sees half a file)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_json_safe(payload), indent=2, allow_nan=False))
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(_json_safe(payload), indent=2, allow_nan=False))
 
 
 def aggregate(evaluations: list[dict], last: int) -> dict:

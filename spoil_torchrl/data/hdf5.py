@@ -93,6 +93,8 @@ def read_dsrl_file(
             if odd:
                 raise DatasetError(f"{path}: '{odd[0]}' is a {type(objects[odd[0]]).__name__}, not an array")
             arrays = {k: _read(v, path, k, mm) for k, v in objects.items()}
+        except DatasetError:  # already names the file and the problem
+            raise
         except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:  # a damaged header or link
             raise DatasetError(f"{path}: the HDF5 file is corrupt ({type(err).__name__}: {err})") from err
     return episodes_from_arrays(

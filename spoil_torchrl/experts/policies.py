@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 from torchrl.modules import ProbabilisticActor
 
+from spoil_torchrl.files import save_atomic, update_digest
 from spoil_torchrl.modules import (
     ObservationNormalizer,
     make_actor,
@@ -63,9 +64,7 @@ def weights_digest(state: dict[str, torch.Tensor]) -> str:
     """SHA-256 over a state dict's names, dtypes, shapes and bytes (stored in policy files, checked on load)."""
     digest = hashlib.sha256()
     for key in sorted(state):
-        value = state[key].detach().cpu().contiguous()
-        digest.update(f"{key}/{value.dtype}/{list(value.shape)}".encode())
-        digest.update(value.reshape(-1).view(torch.uint8).numpy() if value.numel() else b"")
+        update_digest(digest, key, state[key])
     return digest.hexdigest()
 
 
@@ -94,9 +93,7 @@ def save_policy(
     state = {k: v.detach().cpu().clone() for k, v in actor.state_dict().items()}
     obs_dim, hidden, act_dim = _sizes_from_weights(state)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(
+    save_atomic(
         {
             "format": POLICY_FORMAT,
             "env_id": env_id,
@@ -109,9 +106,8 @@ def save_policy(
             "weights_sha256": weights_digest(state),
             "info": dict(info or {}),
         },
-        tmp,
+        path,
     )
-    os.replace(tmp, path)
     return path
 
 

@@ -22,21 +22,14 @@ from typing import Any
 
 import torch
 
+from spoil_torchrl.files import save_atomic
+
 #: Written into every checkpoint; a file with another format is refused.
 CHECKPOINT_FORMAT = "spoil_torchrl.training_state/1"
 
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be used: unreadable, of another format, or damaged (checksum mismatch)."""
-
-
-def save_atomic(obj: Any, path: str | os.PathLike) -> None:
-    """``torch.save(obj)`` through a temporary file, so a reader never sees half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def save_checkpoint(path: str | os.PathLike, state: Mapping[str, Any]) -> None:

@@ -17,8 +17,9 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-import torch
 from omegaconf import OmegaConf
+
+from spoil_torchrl.files import update_digest, write_atomic
 
 #: Settings that may change between a run and its resumption (they do not change what is trained).
 RESUMABLE_CHANGES = ("progress",)
@@ -28,6 +29,7 @@ def pretraining_fingerprint(buffers, diagnostics: Mapping[str, float]) -> str:
     """SHA-256 of every role's stored transitions (annotations included) and the pre-training diagnostics.
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from spoil_torchrl.data import DualDemoBuffers
         >>> episodes = TensorDict({"observation": torch.zeros(2, 1), "episode": torch.tensor([0, 1]),
@@ -42,9 +44,7 @@ def pretraining_fingerprint(buffers, diagnostics: Mapping[str, float]) -> str:
     for role in buffers.roles:
         stored = buffers[role].storage[:]
         for key in sorted(stored.keys(include_nested=True, leaves_only=True), key=str):
-            value = stored.get(key).detach().contiguous()
-            digest.update(f"{role}/{key}/{value.dtype}/{list(value.shape)}".encode())
-            digest.update(value.view(-1).view(torch.uint8).numpy() if value.numel() else b"")
+            update_digest(digest, f"{role}/{key}", stored.get(key))
     digest.update(json.dumps(dict(diagnostics), sort_keys=True).encode())
     return digest.hexdigest()
 
@@ -111,6 +111,4 @@ def trim_csv_logs(log_dir: str | os.PathLike, counts: Mapping[str, int]) -> None
         elif rows > keep:
             with open(path, "rb") as f:
                 lines = f.readlines()[:keep]
-            tmp = path.with_name(path.name + ".tmp")
-            tmp.write_bytes(b"".join(lines))
-            os.replace(tmp, path)
+            write_atomic(path, b"".join(lines))

@@ -16,6 +16,8 @@ import socket
 import time
 from pathlib import Path
 
+from spoil_torchrl.files import write_atomic
+
 #: The lock file a running run keeps in its directory.
 LOCK_NAME = "run.lock"
 #: The training-state checkpoint a run resumes from (relative to the run directory).
@@ -148,19 +150,16 @@ def claim_run_dir(run_dir: str | os.PathLike, *, resume: bool | str = False) -> 
             "hydra.run.dir), or start a fresh run in a new directory: leave hydra.run.dir at its default "
             "(a new time-stamped folder) or delete this one."
         )
-    if resume is True and status == "finished":
+    if resume and status == "finished":  # true or auto
         raise RunDirError(f"{run_dir}: the run there has finished; there is nothing to resume")
     if resume is True and not checkpoint:
         raise RunDirError(
             f"resume=true, but {run_dir} has no checkpoint ({CHECKPOINT_NAME}: it is written at every "
             "evaluation with train.checkpoint=true); start afresh with resume=auto or in a new directory"
         )
-    resuming = bool(resume) and checkpoint and status != "finished"
-    if resume == "auto" and status == "finished":
-        raise RunDirError(f"{run_dir}: the run there has finished; there is nothing to resume")
     run_dir.mkdir(parents=True, exist_ok=True)
     write_lock(run_dir)
-    return resuming
+    return bool(resume) and checkpoint
 
 
 def write_lock(run_dir: str | os.PathLike) -> None:
@@ -172,10 +171,7 @@ def write_lock(run_dir: str | os.PathLike) -> None:
         "job": _scheduler_job(),
         "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    path = Path(run_dir) / LOCK_NAME
-    tmp = path.with_name(LOCK_NAME + ".tmp")
-    tmp.write_text(json.dumps(lock))
-    os.replace(tmp, path)
+    write_atomic(Path(run_dir) / LOCK_NAME, json.dumps(lock))
 
 
 def release_run_dir(run_dir: str | os.PathLike) -> None:

@@ -1,0 +1,55 @@
+"""Files the library writes whole or not at all, and fingerprints of their tensor content.
+
+:func:`write_atomic` / :func:`save_atomic` write through a temporary file beside the target and
+:func:`os.replace` it into place, so a reader (or a run killed while writing) never sees half a file.
+:func:`update_digest` feeds one named tensor into a hash, the single way the policy files' weight checksum and
+a resumed run's pre-training fingerprint are computed.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def write_atomic(path: str | os.PathLike, data: bytes | str) -> None:
+    """Write ``data`` (text as UTF-8) to ``path`` through ``<path>.tmp``; parent folders are created.
+
+    Examples:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "out" / "note.txt"
+        >>> write_atomic(path, "done")
+        >>> path.read_text(), path.with_name("note.txt.tmp").exists()
+        ('done', False)
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+    os.replace(tmp, path)
+
+
+def save_atomic(obj: Any, path: str | os.PathLike) -> None:
+    """``torch.save(obj)`` to ``path`` with :func:`write_atomic`."""
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    write_atomic(path, buffer.getvalue())
+
+
+def update_digest(digest, name: str, value: torch.Tensor) -> None:
+    """Feed ``name``, ``value``'s dtype and shape, then its bytes into ``digest`` (a :mod:`hashlib` object).
+
+    Examples:
+        >>> import hashlib
+        >>> a, b = hashlib.sha256(), hashlib.sha256()
+        >>> update_digest(a, "w", torch.zeros(2)); update_digest(b, "w", torch.zeros(2, 1))
+        >>> a.hexdigest() == b.hexdigest()  # same bytes, another shape
+        False
+    """
+    value = value.detach().cpu().contiguous()
+    digest.update(f"{name}/{value.dtype}/{list(value.shape)}".encode())
+    digest.update(value.reshape(-1).view(torch.uint8).numpy() if value.numel() else b"")
