@@ -10,6 +10,7 @@ The file lands in ``$SPOIL_TORCHRL_DATA_DIR`` (default ``~/.cache/spoil_torchrl/
 
 from __future__ import annotations
 
+import logging
 import time
 
 import hydra
@@ -18,6 +19,8 @@ from omegaconf import DictConfig
 
 from spoil_torchrl.data import ensure_generated, get_generated, load_episodes, read_metadata, segment_pools
 from spoil_torchrl.eval import policy_table
+
+log = logging.getLogger(__name__)
 
 
 @hydra.main(config_path="../configs", config_name="collect_demos", version_base="1.3")
@@ -28,13 +31,13 @@ def main(cfg: DictConfig) -> None:
     path = ensure_generated(cfg.name, force=cfg.force, num_envs=cfg.num_envs, progress=cfg.progress)
     meta = read_metadata(path)
     episodes = load_episodes(f"generated:{cfg.name}")
-    print(
+    log.info(
         f"{cfg.name}: {spec.episodes} episodes of {spec.env_id}, {meta['steps']} steps, in {path}\n"
         f"(made in {meta['seconds']:.0f} s = {meta['steps'] / meta['seconds']:.0f} steps/s; this call "
         f"{time.perf_counter() - start:.0f} s); random-policy return {meta['random_return']}, "
         f"safe-high return {meta['safe_high_return']}\n"
     )
-    print(policy_table(episodes, segment_pools(meta), cost_threshold=meta["cost_threshold"]))
+    log.info(policy_table(episodes, segment_pools(meta), cost_threshold=meta["cost_threshold"]))
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import os
 import sys
@@ -37,7 +38,6 @@ import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
-from torchrl.record.loggers import get_logger
 
 from spoil_torchrl.data import (
     DualDemoBuffers,
@@ -84,6 +84,9 @@ from spoil_torchrl.trainers.run_dir import (
     write_lock,
 )
 from spoil_torchrl.trainers.settings import SettingsError, check_settings
+from spoil_torchrl.trainers.tracking import check_logger_available, make_logger
+
+log = logging.getLogger(__name__)
 
 
 def _json_safe(value):
@@ -108,13 +111,6 @@ def aggregate(evaluations: list[dict], last: int) -> dict:
     return {key: sum(e[key] for e in tail) / len(tail) for key in METRICS}
 
 
-def make_logger(cfg: DictConfig, run_dir: Path):
-    if cfg.logger.type in (None, "", "none"):
-        return None
-    name = f"{cfg.algo.name}_{cfg.dataset.name}_seed{cfg.seed}"
-    return get_logger(cfg.logger.type, logger_name=str(run_dir / "logs"), experiment_name=name)
-
-
 def settings_yaml(cfg: DictConfig) -> str:
     """The resolved settings as written to ``config.yaml`` (``resume`` left out: it says how to start, not
     what to train)."""
@@ -128,6 +124,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     content of ``results.json``."""
     start = time.perf_counter()
     check_settings(OmegaConf.to_container(cfg, resolve=True))  # before any data loading or training
+    check_logger_available(cfg.logger.type)  # a missing tensorboard / wandb fails now, not after pre-training
     if cfg.algo.name not in ALGORITHMS:
         raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     resuming = claim_run_dir(run_dir, resume=cfg.get("resume", False))  # never starts over a run
@@ -194,7 +191,12 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
         seed=10_000 + int(cfg.seed),
         num_envs=int(cfg.task.eval_num_envs),
     )
-    logger = make_logger(cfg, run_dir)
+    # TorchRL logger, labelled by dataset / algo / seed, with the settings as hyper-parameters
+    logger, tracking = make_logger(
+        OmegaConf.to_container(cfg, resolve=True),
+        run_dir / "logs",
+        tracking=None if state is None else state["results"].get("tracking"),
+    )
     if state is not None:  # the evaluations so far; the logs lose what was logged after the checkpoint
         results = state["results"]
         results.setdefault("resumed_at", []).append(int(state["step"]))
@@ -210,6 +212,8 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
             "status": "pre-training",
             "evaluations": [],
         }
+        if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
+            results["tracking"] = tracking
     write_json(run_dir / "results.json", results)
 
     try:
@@ -387,10 +391,10 @@ def main(cfg: DictConfig) -> None:
             raise
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
-    print(summary_table(results))
+    log.info(summary_table(results))
     if "dice_report" in results:
-        print(f"\n{results['dice_report']}")
-    print(f"\nrun directory: {run_dir}")
+        log.info(f"\n{results['dice_report']}")
+    log.info(f"\nrun directory: {run_dir}")
 
 
 if __name__ == "__main__":

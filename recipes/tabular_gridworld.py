@@ -12,6 +12,7 @@ with the optimal routes, Figure 3b's trade-off, Figure A's quality curves) into 
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -46,6 +47,8 @@ from spoil_torchrl.tabular.protocol import is_feasible, normalise, select_candid
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the Agg backend)
+
+log = logging.getLogger(__name__)
 
 STRICT = "SpoilDICE (Eq. 4)"
 SWEEPS = {
@@ -445,8 +448,8 @@ def main(cfg: DictConfig) -> dict:
         plot_layout(grid, make_demonstrators(grid), seeds[0], run_dir / "layout.png")
         plot_tradeoff(cfg, summary, run_dir / "tradeoff.png")
         plot_quality_curves(cfg, summary, run_dir / "quality.png")
-    print(table)
-    print(f"solved and evaluated {len(seeds)} seeds in {seconds:.1f} s; run directory: {run_dir}")
+    log.info(table)
+    log.info(f"solved and evaluated {len(seeds)} seeds in {seconds:.1f} s; run directory: {run_dir}")
     return {"summary": summary}
 
 

@@ -10,6 +10,7 @@ and writes ``results.json`` plus TorchRL logger output into the Hydra run direct
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -23,6 +24,8 @@ from torchrl.record.loggers import get_logger
 from spoil_torchrl.tabular import evaluate, solve_spoildice, total_variation
 from spoil_torchrl.tabular.neural import TabularTrainingConfig, train_tabular_spoildice
 from spoil_torchrl.tabular.problems import random_dual_demo_problem
+
+log = logging.getLogger(__name__)
 
 BANNER = (
     "Tabular check of the neural pipeline: SpoilDICE (discriminators -> support -> nu/lambda -> weighted BC,\n"
@@ -88,7 +91,7 @@ def summary_table(results: list[dict]) -> str:
 
 @hydra.main(config_path="../configs", config_name="tabular_spoildice", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    print(BANNER)
+    log.info(BANNER)
     torch.set_num_threads(cfg.threads)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     logger = get_logger(
@@ -96,8 +99,8 @@ def main(cfg: DictConfig) -> dict:
     )
     results = [run_seed(cfg, int(seed), logger) for seed in cfg.seeds]
     (run_dir / "results.json").write_text(json.dumps(results, indent=2))
-    print(summary_table(results))
-    print(f"run directory: {run_dir}")
+    log.info(summary_table(results))
+    log.info(f"run directory: {run_dir}")
     return {"results": results}
 
 

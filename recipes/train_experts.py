@@ -7,6 +7,7 @@ task and checkpoint it periodically (actor weights + the batch's mean episode re
 from __future__ import annotations
 
 import functools
+import logging
 from pathlib import Path
 
 import hydra
@@ -17,6 +18,8 @@ from omegaconf import DictConfig, OmegaConf
 from spoil_torchrl.envs import make_env
 from spoil_torchrl.experts import PPOConfig, train_ppo
 from spoil_torchrl.tasks import get_env_task
+
+log = logging.getLogger(__name__)
 
 
 @hydra.main(config_path="../configs", config_name="train_experts", version_base="1.3")
@@ -35,7 +38,7 @@ def main(cfg: DictConfig) -> None:
         progress=cfg.progress,
     )
     last = log[-1]
-    print(
+    log.info(
         f"{task.env_id}: {last['frames']} frames in {last['seconds']:.0f} s "
         f"({last['frames'] / last['seconds']:.0f} frames/s); last batch: return {last['episode_return']:.2f}, "
         f"cost {last['episode_cost']:.2f}, lambda {last['lagrange']:.3f}; checkpoints in {run_dir}"

@@ -13,3 +13,7 @@ as composable TorchRL :class:`~torchrl.objectives.LossModule` s:
 """
 
 __version__ = "0.1.0"
+
+from spoil_torchrl.console import quiet_unrelated_notices
+
+quiet_unrelated_notices()  # before anything imports gymnasium (see spoil_torchrl.console)

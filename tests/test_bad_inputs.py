@@ -268,6 +268,7 @@ def _snapshot(folder: Path) -> dict[str, str]:
         (["threads=0"], "threads = 0"),
         (["resume=maybe"], "resume must be one of"),
         (["algo.name=sac"], "has no builder"),
+        (["logger.type=tensorbord"], "'tensorbord' is not a logger"),
         (["DATA=negative"], "costs are negative"),
         (["DATA=truncated"], "truncated or corrupt|corrupt"),
         (["RUN=existing"], "already holds a run"),

@@ -36,6 +36,8 @@ def test_tabular_recipe_end_to_end(tmp_path):
         assert result["policies"]["BC (d_P)"]["cost"] > 0.05  # the performant data are unsafe
         assert result["tv_bc_vs_exact"] > 0.2
     assert list(tmp_path.rglob("*.csv")), "the TorchRL CSV logger wrote nothing"
+    assert "\x1b" not in proc.stdout + proc.stderr  # no ANSI colour codes (TorchRL's logger is routed plainly)
+    assert "| SpoilDICE neural |" in (tmp_path / "tabular_spoildice.log").read_text()  # Hydra's run log
 
 
 def test_train_experts_recipe_tiny(tmp_path):
@@ -86,6 +88,8 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
 
     proc, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset)
     assert "| normalized_feasible_return |" in proc.stdout
+    assert "| normalized_feasible_return |" in (tmp_path / "spoildice_dsrl.log").read_text()
+    assert "\x1b" not in proc.stdout + proc.stderr and "AdroitHand" not in proc.stderr
     assert results["status"] == "finished" and results["algo"] == "spoildice"
     assert [e["step"] for e in results["evaluations"]] == [100, 200]
     assert set(results["aggregate"]) >= {"normalized_feasible_return", "normalized_cost", "feasible_return"}
