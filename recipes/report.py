@@ -12,7 +12,8 @@ different training budgets (the ``train`` section of the ``config.yaml`` beside 
 the report with an error naming the runs.
 The plot puts normalised cost on x and normalised feasible return on y, one marker per algorithm with
 standard-error bars, the safe region (cost <= 1) shaded; the curves plot each metric against the training
-step (mean over seeds, standard error shaded).
+step (mean over seeds, standard error shaded); both from ``spoil_torchrl.eval.figures`` (one colour and
+marker per algorithm on every panel, one legend outside the panels).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 import torch
 
 from spoil_torchrl.eval import mean_stderr
+from spoil_torchrl.eval.figures import plot_learning_curves, plot_tradeoff
 from spoil_torchrl.trainers.run_dir import run_status
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
@@ -176,51 +178,6 @@ def markdown(summary: dict[tuple[str, str], dict]) -> str:
     return "\n".join(lines)
 
 
-def plot(summary: dict[tuple[str, str], dict], path: Path) -> None:
-    """Normalised cost (x) against normalised feasible return (y), the safe region shaded."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    datasets = sorted({d for d, _ in summary})
-    fig, axes = plt.subplots(1, len(datasets), figsize=(5 * len(datasets), 4), squeeze=False)
-    for ax, dataset in zip(axes[0], datasets, strict=True):
-        rows = {algo: row for (d, algo), row in summary.items() if d == dataset}
-        x_max = max(
-            1.5,
-            *(
-                (m + (0 if math.isnan(e) else e)) * 1.1
-                for m, e in (r["normalized_cost"] for r in rows.values())
-            ),
-        )
-        ax.axvspan(0, 1, color="tab:green", alpha=0.12, label="safe (cost <= 1)")
-        markers = "osD^v<>phX*"
-        for i, algo in enumerate(sorted(rows, key=_algo_order)):
-            row = rows[algo]
-            (x, xe), (y, ye) = row["normalized_cost"], row["normalized_feasible_return"]
-            ax.errorbar(
-                x,
-                y,
-                xerr=0 if math.isnan(xe) else xe,
-                yerr=0 if math.isnan(ye) else ye,
-                fmt=markers[i % len(markers)],
-                capsize=3,
-                label=ALGORITHM_NAMES.get(algo, algo),
-            )
-        ax.set_xlim(0, x_max)
-        y_values = [row["normalized_feasible_return"][0] for row in rows.values()]
-        ax.set_ylim(min(0.0, *y_values) - 0.05, max(1.0, *y_values) + 0.05)
-        ax.set_xlabel("normalised cost")
-        ax.set_ylabel("normalised feasible return")
-        ax.set_title(dataset)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def learning_curves(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, str], dict]:
     """Per group: the evaluation steps shared by all its seeds and, per metric, the mean and standard error
     over seeds at each of them."""
@@ -238,45 +195,6 @@ def learning_curves(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, 
             curves[metric] = by_step
         out[key] = curves
     return out
-
-
-def plot_curves(runs: dict[tuple[str, str], list[dict]], path: Path) -> None:
-    """Normalised feasible return (top) and normalised cost (bottom) against the training step, one line per
-    algorithm (mean over seeds, standard error shaded), one column per dataset."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    curves = learning_curves(runs)
-    datasets = sorted({d for d, _ in curves})
-    fig, axes = plt.subplots(2, len(datasets), figsize=(5 * len(datasets), 7), squeeze=False, sharex="col")
-    for col, dataset in enumerate(datasets):
-        for algo in sorted((a for d, a in curves if d == dataset), key=_algo_order):
-            c = curves[(dataset, algo)]
-            n = len(runs[(dataset, algo)])
-            for row, metric in enumerate(METRICS[:2]):
-                mean = [m for m, _ in c[metric]]
-                se = [0.0 if math.isnan(e) else e for _, e in c[metric]]
-                ax = axes[row][col]
-                (line,) = ax.plot(c["steps"], mean, label=f"{ALGORITHM_NAMES.get(algo, algo)} ({n})")
-                ax.fill_between(
-                    c["steps"],
-                    [m - e for m, e in zip(mean, se, strict=True)],
-                    [m + e for m, e in zip(mean, se, strict=True)],
-                    color=line.get_color(),
-                    alpha=0.2,
-                )
-        axes[0][col].set_title(dataset)
-        axes[0][col].set_ylabel("normalised feasible return")
-        axes[1][col].set_ylabel("normalised cost")
-        axes[1][col].axhline(1.0, color="tab:green", linestyle="--", linewidth=1, label="cost limit")
-        axes[1][col].set_xlabel("training step")
-        axes[1][col].legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def main() -> None:
@@ -306,10 +224,14 @@ def main() -> None:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
+    order = list(ALGORITHM_NAMES)
     if args.plot:
-        plot(summary, args.plot)
+        plot_tradeoff(summary, args.plot, names=ALGORITHM_NAMES, order=order)
     if args.curves:
-        plot_curves(runs, args.curves)
+        seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
+        plot_learning_curves(
+            learning_curves(runs), args.curves, seeds=seeds, names=ALGORITHM_NAMES, order=order
+        )
 
 
 if __name__ == "__main__":

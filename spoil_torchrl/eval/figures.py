@@ -1,0 +1,238 @@
+"""Figures of a comparison: the cost / feasible-return trade-off and the learning curves.
+
+Both take per-(dataset, algorithm) summaries (as ``recipes/report.py`` makes them) and draw every algorithm
+in one colour and marker on every panel (:func:`algorithm_style`), with one legend for the whole figure,
+outside the panels, so that no legend covers a point.
+
+* :func:`plot_tradeoff`: normalised cost (x, square-root scale so that the crowd of safe results near 0 spreads
+  out while 0 stays on the axis) against normalised feasible return (y, fitted to the points), one marker per
+  algorithm with standard-error bars, the safe region (cost <= 1) shaded and its edge drawn.
+* :func:`plot_learning_curves`: normalised feasible return and normalised cost against the training step,
+  mean over seeds with the standard error shaded, the cost limit drawn.
+
+Example:
+    >>> import tempfile, pathlib
+    >>> summary = {("d", "bc"): {"normalized_cost": (2.0, 0.5), "normalized_feasible_return": (0.6, 0.1)},
+    ...            ("d", "spoildice"): {"normalized_cost": (0.4, 0.1), "normalized_feasible_return": (0.8, 0.0)}}
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "tradeoff.png"
+    >>> plot_tradeoff(summary, path, names={"bc": "BC", "spoildice": "SpoilDICE"})
+    >>> path.stat().st_size > 0
+    True
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+__all__ = ["algorithm_style", "plot_learning_curves", "plot_tradeoff"]
+
+#: Fixed colours and markers, in the paper's column order; later algorithms take the following ones.
+_COLOURS = ("#1f77b4", "#ff7f0e", "#8c564b", "#2ca02c", "#9467bd", "#e377c2", "#7f7f7f", "#bcbd22", "#d62728")
+_MARKERS = ("o", "s", "v", "D", "^", "P", "X", "<", "*")
+#: x ticks of the trade-off panels (square-root scale: evenly spread near 0, sparse far out)
+COST_TICKS = (0, 0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32)
+PAPER_ORDER = (
+    "bc",
+    "fbc",
+    "jfbc",
+    "demodice_s",
+    "demodice_u",
+    "dwbc_s",
+    "safedice",
+    "coptidice",
+    "spoildice",
+)
+
+
+def algorithm_style(algo: str, order: Sequence[str] = PAPER_ORDER) -> dict:
+    """Colour and marker of an algorithm, the same on every panel and figure (SpoilDICE: red star)."""
+    index = order.index(algo) if algo in order else len(order) + sum(map(ord, algo))
+    return {"color": _COLOURS[index % len(_COLOURS)], "marker": _MARKERS[index % len(_MARKERS)]}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _grid(plt, panels: int, rows_per_panel: int = 1, width: float = 4.6, height: float = 3.6):
+    cols = min(panels, 3)
+    rows = math.ceil(panels / cols)
+    fig, axes = plt.subplots(
+        rows * rows_per_panel, cols, figsize=(width * cols, height * rows * rows_per_panel), squeeze=False
+    )
+    return fig, axes, cols
+
+
+def _datasets_and_algos(keys, order: Sequence[str]) -> tuple[list[str], list[str]]:
+    datasets = sorted({d for d, _ in keys})
+    rank = {a: i for i, a in enumerate(order)}
+    algos = sorted({a for _, a in keys}, key=lambda a: (rank.get(a, len(rank)), a))
+    return datasets, algos
+
+
+def _shared_legend(fig, algos, names: Mapping[str, str], order, extra: Sequence = ()) -> None:
+    from matplotlib.lines import Line2D
+
+    handles = [
+        Line2D([], [], linestyle="none", markersize=8, **algorithm_style(a, order), label=names.get(a, a))
+        for a in algos
+    ]
+    fig.legend(
+        handles=[*handles, *extra],
+        loc="lower center",
+        ncol=min(len(handles) + len(extra), 6),
+        frameon=False,
+        bbox_to_anchor=(0.5, 0.0),
+    )
+
+
+def _nan0(value: float) -> float:
+    return 0.0 if math.isnan(value) else value
+
+
+def plot_tradeoff(
+    summary: Mapping[tuple[str, str], Mapping],
+    path: str | Path,
+    *,
+    names: Mapping[str, str] | None = None,
+    order: Sequence[str] = PAPER_ORDER,
+) -> None:
+    """Save the trade-off scatter: one panel per dataset, x = normalised cost, y = normalised feasible return.
+
+    ``summary[(dataset, algo)]`` holds ``normalized_cost`` and ``normalized_feasible_return`` as
+    ``(mean, standard error)`` (NaN error for a single seed: no bar).
+    """
+    from matplotlib.patches import Patch
+
+    plt, names = _pyplot(), dict(names or {})
+    datasets, algos = _datasets_and_algos(summary, order)
+    fig, axes, cols = _grid(plt, len(datasets))
+    for i, dataset in enumerate(datasets):
+        ax = axes[i // cols][i % cols]
+        rows = {a: summary[(dataset, a)] for a in algos if (dataset, a) in summary}
+        x_hi = [m + _nan0(e) for m, e in (r["normalized_cost"] for r in rows.values())]
+        y_lo = [m - _nan0(e) for m, e in (r["normalized_feasible_return"] for r in rows.values())]
+        y_hi = [m + _nan0(e) for m, e in (r["normalized_feasible_return"] for r in rows.values())]
+        x_max = max(1.5, *x_hi) * 1.08
+        ax.set_xscale("function", functions=(_sqrt, _square))
+        ax.axvspan(0, 1, color="tab:green", alpha=0.12, zorder=0)
+        ax.axvline(1.0, color="tab:green", linewidth=1, zorder=1)
+        for algo, row in rows.items():
+            (x, xe), (y, ye) = row["normalized_cost"], row["normalized_feasible_return"]
+            style = algorithm_style(algo, order)
+            ax.errorbar(
+                x,
+                y,
+                xerr=_nan0(xe),
+                yerr=_nan0(ye),
+                fmt=style["marker"],
+                color=style["color"],
+                markersize=8 if algo == "spoildice" else 6,
+                capsize=3,
+                alpha=0.9,
+                zorder=3,
+            )
+        span = max(y_hi) - min(y_lo)
+        ax.set_ylim(min(y_lo) - 0.08 * span - 0.01, max(y_hi) + 0.08 * span + 0.01)
+        ax.set_xlim(0, x_max)
+        ax.set_xticks([t for t in COST_TICKS if t <= x_max])
+        ax.set_xticklabels([f"{t:g}" for t in COST_TICKS if t <= x_max])
+        ax.set_xlabel("normalised cost (square-root scale)")
+        ax.set_ylabel("normalised feasible return")
+        ax.set_title(dataset, fontsize=10)
+        ax.grid(alpha=0.3)
+    for j in range(len(datasets), len(axes) * cols):
+        axes[j // cols][j % cols].axis("off")
+    safe = Patch(color="tab:green", alpha=0.25, label="safe (cost <= 1)")
+    _shared_legend(fig, algos, names, order, extra=[safe])
+    fig.tight_layout(rect=(0, 0.07 if len(axes) > 1 else 0.12, 1, 1))
+    _save(plt, fig, path)
+
+
+def _sqrt(x):
+    import numpy as np
+
+    return np.sqrt(np.clip(x, 0, None))
+
+
+def _square(x):
+    return x**2
+
+
+def plot_learning_curves(
+    curves: Mapping[tuple[str, str], Mapping],
+    path: str | Path,
+    *,
+    seeds: Callable[[str, str], int] | None = None,
+    names: Mapping[str, str] | None = None,
+    order: Sequence[str] = PAPER_ORDER,
+) -> None:
+    """Save the learning curves: per dataset, normalised feasible return (upper panel) and normalised cost
+    (lower panel) against the training step, mean over seeds with the standard error shaded.
+
+    ``curves[(dataset, algo)]`` holds ``steps`` and, for both metrics, one ``(mean, standard error)`` per step;
+    ``seeds(dataset, algo)`` (optional) gives the seed count written in the panel's title line.
+    """
+    from matplotlib.lines import Line2D
+
+    plt, names = _pyplot(), dict(names or {})
+    datasets, algos = _datasets_and_algos(curves, order)
+    fig, axes, cols = _grid(plt, len(datasets), rows_per_panel=2, height=3.0)
+    metrics = (
+        ("normalized_feasible_return", "normalised feasible return"),
+        ("normalized_cost", "normalised cost"),
+    )
+    for i, dataset in enumerate(datasets):
+        top, col = 2 * (i // cols), i % cols
+        counts = []
+        for algo in algos:
+            if (dataset, algo) not in curves:
+                continue
+            c = curves[(dataset, algo)]
+            if seeds is not None:
+                counts.append(seeds(dataset, algo))
+            color = algorithm_style(algo, order)["color"]
+            for row, (metric, _) in enumerate(metrics):
+                mean = [m for m, _ in c[metric]]
+                se = [_nan0(e) for _, e in c[metric]]
+                ax = axes[top + row][col]
+                ax.plot(c["steps"], mean, color=color, linewidth=2 if algo == "spoildice" else 1.2)
+                ax.fill_between(
+                    c["steps"],
+                    [m - e for m, e in zip(mean, se, strict=True)],
+                    [m + e for m, e in zip(mean, se, strict=True)],
+                    color=color,
+                    alpha=0.15,
+                    linewidth=0,
+                )
+        seeds_text = f" ({min(counts)}-{max(counts)} seeds)" if counts and min(counts) != max(counts) else ""
+        if counts and min(counts) == max(counts):
+            seeds_text = f" ({counts[0]} seeds)"
+        axes[top][col].set_title(dataset + seeds_text, fontsize=10)
+        for row, (_, label) in enumerate(metrics):
+            axes[top + row][col].set_ylabel(label)
+            axes[top + row][col].grid(alpha=0.3)
+        axes[top + 1][col].axhline(1.0, color="tab:green", linestyle="--", linewidth=1)
+        axes[top + 1][col].set_xlabel("training step")
+    for j in range(len(datasets), (len(axes) // 2) * cols):
+        axes[2 * (j // cols)][j % cols].axis("off")
+        axes[2 * (j // cols) + 1][j % cols].axis("off")
+    limit = Line2D([], [], color="tab:green", linestyle="--", label="cost limit")
+    handles = [Line2D([], [], color=algorithm_style(a, order)["color"], label=names.get(a, a)) for a in algos]
+    fig.legend(handles=[*handles, limit], loc="lower center", ncol=min(len(handles) + 1, 6), frameon=False)
+    fig.tight_layout(rect=(0, 0.06 if len(axes) > 2 else 0.1, 1, 1))
+    _save(plt, fig, path)
+
+
+def _save(plt, fig, path: str | Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
