@@ -300,9 +300,13 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
                 for key, value in result["dice"].items():
                     logger.log_scalar(key, value, step=step)
         result["seconds"] = time.perf_counter() - train_start
+        trainer.progress.note(
+            f"step {step}: feasible return {result['normalized_feasible_return']:.2f}, "
+            f"cost {result['normalized_cost']:.2f}"
+        )
         results["evaluations"].append(result)
         write_json(run_dir / "results.json", results)
-        return {f"eval/{key}": result[key] for key in METRICS} | {"log_pbar": True}
+        return {f"eval/{key}": result[key] for key in METRICS}
 
     def checkpoint(batch) -> None:
         """After the evaluation and its log rows: everything a resumed run needs to continue from here."""
@@ -334,6 +338,7 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         logger=logger,
         log_interval=int(train.log_interval),
         progress_bar=cfg.progress,
+        progress_label=f"training {cfg.algo.name}",
     )
     trainer.register_op("post_steps_log", evaluate)
     trainer.register_op("post_steps_log", checkpoint)  # runs after the Trainer has logged the evaluation

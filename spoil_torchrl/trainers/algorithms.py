@@ -163,6 +163,7 @@ def train_discriminators(
         steps_per_batch=min(100, int(cfg["steps"])),
         logger=logger,
         progress_bar=progress,
+        progress_label=f"pre-training {', '.join(f'C_{role[0].upper()}' for role in positives)}",
     )
     trainer.train()
     return {name.removeprefix("disc_"): loss for name, loss in losses.items()}

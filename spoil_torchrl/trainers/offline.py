@@ -5,7 +5,7 @@ TorchRL's :class:`~torchrl.trainers.Trainer` is built around a data collector: i
 counts the collected frames, and runs ``optim_steps_per_batch`` optimisation steps per collected batch. Offline
 there is nothing to collect, so :class:`OfflineBatchSource` yields empty TensorDicts whose batch size is the
 number of optimisation steps they stand for: the Trainer's frame counter then counts optimisation steps, its
-progress bar, logging interval and hooks work unchanged, and every optimisation step draws its own batch from
+logging interval and hooks work unchanged (the progress bar is our labelled :class:`StepProgress`), and every optimisation step draws its own batch from
 the replay buffers through a ``process_optim_batch`` hook (:class:`SampleBuffers`). :class:`MultiLossStepper`
 (a TorchRL :class:`~torchrl.trainers.OptimizationStepper`) evaluates several LossModules in order on that batch
 and steps all their optimisers; because each ``loss_*`` term reaches only its own parameters (TorchRL's
@@ -24,6 +24,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 from torchrl.trainers import OptimizationStepper, Trainer
+from tqdm.auto import tqdm
 
 _stop_reason: str | None = None
 
@@ -229,6 +230,59 @@ class MultiLossStepper(OptimizationStepper):
             o.load_state_dict(s)
 
 
+class StepProgress:
+    """A labelled progress bar over a Trainer's optimisation steps, with a short note (the last evaluation).
+
+    Stands in for the Trainer's own bar, which has no label and whose description lists every value logged with
+    ``log_pbar``. Updated at each chunk boundary (``post_steps``); a resumed Trainer starts it where it left off.
+
+    Examples:
+        >>> bar = StepProgress(1000, "training", enabled=False)
+        >>> bar.update(300); bar.note("return 0.81, cost 0.40"); bar.close()
+        >>> bar.steps, bar.text
+        (300, 'return 0.81, cost 0.40')
+    """
+
+    def __init__(self, total: int, label: str, *, enabled: bool = True) -> None:
+        self.total, self.label, self.enabled = int(total), label, enabled
+        self.steps, self.text, self._bar = 0, "", None
+
+    def update(self, steps: int) -> None:
+        """Move the bar to ``steps`` optimisation steps done."""
+        if self.enabled and self._bar is None:
+            self._bar = tqdm(
+                total=self.total, initial=steps, desc=self.label, unit="step", dynamic_ncols=True
+            )
+        elif self._bar is not None:
+            self._bar.update(steps - self.steps)
+        self.steps = steps
+
+    def note(self, text: str) -> None:
+        """Show ``text`` after the bar (kept short: one evaluation's two numbers)."""
+        self.text = text
+        if self._bar is not None:
+            self._bar.set_postfix_str(text, refresh=True)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
+class OfflineTrainer(Trainer):
+    """TorchRL's :class:`~torchrl.trainers.Trainer` with a labelled :class:`StepProgress` bar (``progress``),
+    closed when training ends or stops."""
+
+    progress: StepProgress
+
+    def train(self):
+        self.progress.update(self.collected_frames)  # 0, or where a resumed Trainer left off
+        try:
+            return super().train()
+        finally:
+            self.progress.close()
+
+
 def offline_trainer(
     stepper: MultiLossStepper,
     sample: Callable[[], TensorDictBase],
@@ -238,9 +292,11 @@ def offline_trainer(
     logger=None,
     log_interval: int = 100,
     progress_bar: bool = True,
-) -> Trainer:
+    progress_label: str = "training",
+) -> OfflineTrainer:
     """A :class:`~torchrl.trainers.Trainer` that runs ``total_steps`` offline optimisation steps of ``stepper``,
     each on a fresh ``sample()``. Register further hooks (evaluation, checkpoints) with ``register_op``.
+    ``progress_bar`` shows one bar labelled ``progress_label`` (``trainer.progress``; ``note`` adds a status).
 
     Examples:
         >>> from torch import nn
@@ -258,7 +314,7 @@ def offline_trainer(
         >>> trainer.collected_frames, len(drawn)  # one sample per optimisation step
         (25, 25)
     """
-    trainer = Trainer(
+    trainer = OfflineTrainer(
         collector=OfflineBatchSource(total_steps, steps_per_batch),
         total_frames=total_steps,
         frame_skip=1,
@@ -269,9 +325,11 @@ def offline_trainer(
         optimization_stepper=stepper,
         logger=logger,
         log_interval=log_interval,
-        progress_bar=progress_bar,
+        progress_bar=False,  # our labelled bar instead (StepProgress)
         clip_grad_norm=False,
     )
+    trainer.progress = StepProgress(total_steps, progress_label, enabled=progress_bar)
+    trainer.register_op("post_steps", lambda: trainer.progress.update(trainer.collected_frames))
     trainer.register_op("process_optim_batch", SampleBuffers(sample))
     trainer.register_op("post_steps", _raise_if_stopped)  # see stop_on_signals
     return trainer
