@@ -3,7 +3,8 @@
 Prints the run metadata, whether the file was finished (or which complete episodes were salvaged from a run
 that died), and one table row per episode: evaluation step, episode, length, return, cost, feasible return
 and strict feasible return (the numbers stored in the episode summaries, see
-:mod:`spoil_torchrl.eval.metrics`). ``--plot`` saves a PNG of return, feasible return and cost per episode.
+:mod:`spoil_torchrl.eval.metrics`). ``--plot`` saves a PNG of return, feasible return and cost against the
+training step of each evaluation.
 For step-level plots open the file in Foxglove (topics ``/eval/step`` and ``/eval/episode``).
 """
 
@@ -66,28 +67,41 @@ def episode_table(rollouts: Rollouts) -> str:
 
 
 def plot_rollouts(rollouts: Rollouts, path: str | Path) -> Path:
-    """Save a PNG with return / feasible return (top) and cost with the threshold (bottom) per episode."""
+    """Save a PNG of the run's evaluations against the training step: return and feasible return (top), episode
+    cost with the threshold (bottom); each episode a faint dot, each evaluation's mean a line."""
     import matplotlib
-    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     episodes = rollouts.episodes
-    x = list(range(episodes.batch_size[0]))
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
-    top.plot(x, episodes["return"].tolist(), "o-", label="return")
-    top.plot(x, episodes["feasible_return"].tolist(), "s--", label="feasible return")
+    steps = episodes["evaluation_step"].tolist()
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8.5, 5), sharex=True)
+    series = (
+        (top, "return", "tab:blue", "o"),
+        (top, "feasible_return", "tab:green", "s"),
+        (bottom, "cost", "tab:red", "o"),
+    )
+    for ax, key, color, marker in series:
+        values = episodes[key].tolist()
+        by_step: dict[int, list[float]] = {}
+        for step, value in zip(steps, values, strict=True):
+            by_step.setdefault(step, []).append(value)
+        xs = sorted(by_step)
+        label = key.replace("_", " ")
+        ax.plot(steps, values, marker, color=color, alpha=0.25, markersize=3, linestyle="none")
+        ax.plot(
+            xs, [sum(by_step[x]) / len(by_step[x]) for x in xs], "-", color=color, label=f"{label} (mean)"
+        )
     top.set_ylabel("return")
-    top.legend(loc="best")
-    bottom.plot(x, episodes["cost"].tolist(), "o-", color="tab:red", label="episode cost")
+    outside = dict(loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)  # never over the points
+    top.legend(**outside)
     thresholds = {t for t in episodes["cost_threshold"].tolist() if not math.isnan(t)}
     for t in sorted(thresholds):
         bottom.axhline(t, color="k", linestyle=":", label=f"threshold {t:g}")
-    bottom.set_ylabel("cost")
-    bottom.set_xlabel("episode (file order: evaluation step, then episode)")
-    bottom.legend(loc="best")
-    bottom.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    bottom.set_ylabel("episode cost")
+    bottom.set_xlabel("training step of the evaluation (dots: episodes)")
+    bottom.legend(**outside)
     title = ", ".join(
         f"{k} {rollouts.metadata[k]}" for k in ("task", "algo", "seed") if k in rollouts.metadata
     )
