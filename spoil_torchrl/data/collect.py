@@ -75,6 +75,7 @@ def rollout(
     deterministic: bool = False,
     progress: bool = True,
     desc: str | None = None,
+    bar: tqdm | None = None,
 ) -> dict[str, np.ndarray]:
     """Run ``episodes`` episodes of ``policy`` (``None``: uniform random actions) and return DSRL arrays.
 
@@ -85,6 +86,8 @@ def rollout(
         seed: seeds the environments' resets and the action sampling.
         num_envs: environments stepped in lockstep (the policy runs once per step on all of them).
         deterministic: take the policy's deterministic action (evaluation) instead of sampling it.
+        progress, desc: a progress bar of its own, labelled ``desc``;
+        bar: or advance this (the caller's) bar instead, showing ``desc`` beside it (one bar over many calls).
 
     Returns:
         ``observations``, ``next_observations``, ``actions``, ``rewards``, ``costs`` (float32), ``terminals``,
@@ -105,7 +108,13 @@ def rollout(
     steps: list[list[tuple]] = [[] for _ in envs]
     finished: list[list[tuple]] = []
     active, started = list(range(len(envs))), len(envs)
-    bar = tqdm(total=episodes * task.episode_length, desc=desc or env_id, disable=not progress, unit="step")
+    own_bar = bar is None
+    if own_bar:
+        bar = tqdm(
+            total=episodes * task.episode_length, desc=desc or env_id, disable=not progress, unit="step"
+        )
+    elif desc:
+        bar.set_postfix_str(desc)
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     with torch.random.fork_rng(devices=[]), torch.no_grad(), set_exploration_type(mode):
         torch.manual_seed(_derive_seed(seed, 4))
@@ -140,7 +149,8 @@ def rollout(
                     obs[i] = next_obs
                     still.append(i)
             active = still
-    bar.close()
+    if own_bar:
+        bar.close()
     for env in envs:
         env.close()
     flat = [s for episode in finished for s in episode]
@@ -165,7 +175,9 @@ def episode_totals(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarra
     return rewards, costs
 
 
-def reference_returns(env_id: str, *, episodes: int = 10, seed: int = 0, progress: bool = True) -> dict:
+def reference_returns(
+    env_id: str, *, episodes: int = 10, seed: int = 0, progress: bool = True, bar: tqdm | None = None
+) -> dict:
     """Mean returns of the random policy and of the committed ``safe-high`` policy (``None`` if the task has
     none): the task's return normalisation ``(R - random) / (safe_high - random)`` for generated data."""
     from spoil_torchrl.experts.policies import zoo_names
@@ -182,6 +194,7 @@ def reference_returns(env_id: str, *, episodes: int = 10, seed: int = 0, progres
             seed=_derive_seed(seed, 99),
             progress=progress,
             desc=f"reference {spec}",
+            bar=bar,
         )
         out[name] = float(episode_totals(arrays)[0].mean())
     return out
@@ -224,6 +237,14 @@ def collect(
         raise ValueError(f"metadata may not override the collector's own entries {sorted(clash)}")
     start_time = time.perf_counter()
     parts, records, first = [], [], 0
+    # one bar over every segment and the reference rollouts, so that its estimate is the whole job's
+    from spoil_torchrl.experts.policies import zoo_names
+
+    reference_rollouts = reference_episodes * (1 + ("safe-high" in zoo_names(env_id)))  # random (+ safe-high)
+    total = (sum(segment.episodes for segment in segments) + reference_rollouts) * task.episode_length
+    bar = tqdm(
+        total=total, desc=f"collecting {env_id}", disable=not progress, unit="step", dynamic_ncols=True
+    )
     for k, segment in enumerate(segments):
         arrays = rollout(
             env_id,
@@ -233,6 +254,7 @@ def collect(
             num_envs=num_envs,
             progress=progress,
             desc=f"{segment.label} ({segment.policy})",
+            bar=bar,
         )
         returns, costs = episode_totals(arrays)
         records.append(
@@ -246,7 +268,8 @@ def collect(
         )
         first += segment.episodes
         parts.append(arrays)
-    references = reference_returns(env_id, episodes=reference_episodes, seed=seed, progress=progress)
+    references = reference_returns(env_id, episodes=reference_episodes, seed=seed, progress=progress, bar=bar)
+    bar.close()
     arrays = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     meta = {
         "env_id": env_id,
