@@ -1,0 +1,1 @@
+# The Hydra configs, installed as the package spoil_torchrl.configs (see recipes/__init__.py).
