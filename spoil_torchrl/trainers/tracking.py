@@ -43,11 +43,11 @@ __all__ = [
     "tracking_labels",
 ]
 
-#: logger type -> (the module it imports, the extra of this package that installs it)
+#: logger type -> (the module it imports, what installs it)
 LOGGER_PACKAGES = {
-    "tensorboard": ("tensorboard", "tensorboard"),
-    "wandb": ("wandb", "wandb"),
-    "mlflow": ("mlflow", "mlflow"),
+    "tensorboard": ("tensorboard", "pip install 'spoil_torchrl[tensorboard]'"),
+    "wandb": ("wandb", "pip install 'spoil_torchrl[wandb]'"),
+    "mlflow": ("mlflow", "pip install mlflow"),
 }
 #: logger types that write nothing
 NO_LOGGER = (None, "", "none")
@@ -56,17 +56,16 @@ DEFAULT_PROJECT = "spoil_torchrl"
 
 def check_logger_available(kind: str | None) -> None:
     """Refuse a logger type TorchRL does not know, or one whose package is not installed (a
-    :class:`~spoil_torchrl.trainers.settings.SettingsError` naming the extra to install)."""
+    :class:`~spoil_torchrl.trainers.settings.SettingsError` saying what installs it)."""
     if kind in NO_LOGGER or kind == "csv":
         return
     if kind not in LOGGER_PACKAGES:
         known = ", ".join(["csv", *LOGGER_PACKAGES, "none"])
         raise SettingsError(f"logger.type={kind!r} is not a logger; choose one of {known}")
-    module, extra = LOGGER_PACKAGES[kind]
+    module, install = LOGGER_PACKAGES[kind]
     if importlib.util.find_spec(module) is None:
         raise SettingsError(
-            f"logger={kind} needs the {module} package, which is not installed: "
-            f"pip install 'spoil_torchrl[{extra}]' (or choose logger=csv)"
+            f"logger={kind} needs the {module} package, which is not installed: {install} (or choose logger=csv)"
         )
 
 

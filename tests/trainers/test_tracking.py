@@ -57,13 +57,20 @@ def test_unknown_logger_refused():
         check_logger_available(kind)
 
 
-@pytest.mark.parametrize("kind,extra", [("tensorboard", "tensorboard"), ("wandb", "wandb")])
-def test_missing_logger_package_refused_with_its_extra(monkeypatch, kind, extra):
+@pytest.mark.parametrize(
+    "kind,install",
+    [
+        ("tensorboard", r"pip install 'spoil_torchrl\[tensorboard\]'"),
+        ("wandb", r"pip install 'spoil_torchrl\[wandb\]'"),
+        ("mlflow", r"pip install mlflow \(or choose logger=csv\)"),
+    ],
+)
+def test_missing_logger_package_refused_with_its_install(monkeypatch, kind, install):
     real = importlib.util.find_spec
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda name, *a: None if name == kind else real(name, *a)
     )
-    with pytest.raises(SettingsError, match=rf"pip install 'spoil_torchrl\[{extra}\]'"):
+    with pytest.raises(SettingsError, match=install):
         check_logger_available(kind)
     with pytest.raises(SettingsError):  # make_logger checks too, before creating anything
         make_logger(settings(type=kind), "unused")
