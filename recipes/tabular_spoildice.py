@@ -46,13 +46,13 @@ def run_seed(cfg: DictConfig, seed: int, logger) -> dict:
     training = TabularTrainingConfig(**{**OmegaConf.to_container(cfg.training), "seed": seed})
     training.discriminator_cells = tuple(training.discriminator_cells)
 
-    def log(metrics: dict, step: int) -> None:
+    def log_metrics(metrics: dict, step: int) -> None:
         if logger is not None:
             for key, value in metrics.items():
                 logger.log_scalar(f"seed{seed}/{key}", value, step=step)
 
     start = time.perf_counter()
-    learned = train_tabular_spoildice(problem, training, progress=cfg.progress, log=log)
+    learned = train_tabular_spoildice(problem, training, progress=cfg.progress, log=log_metrics)
     seconds = time.perf_counter() - start
     rows = {"BC (d_P)": problem.d_P, "SpoilDICE exact": exact, "SpoilDICE neural": learned.occupancy}
     result = {

@@ -29,7 +29,7 @@ def main(cfg: DictConfig) -> None:
     config = PPOConfig(**OmegaConf.to_container(cfg.ppo))
     config.hidden_cells = tuple(config.hidden_cells)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    log = train_ppo(
+    history = train_ppo(
         functools.partial(make_env, task.env_id, seed=config.seed),
         task.observation_dim,
         task.action_dim,
@@ -37,7 +37,7 @@ def main(cfg: DictConfig) -> None:
         run_dir,
         progress=cfg.progress,
     )
-    last = log[-1]
+    last = history[-1]
     log.info(
         f"{task.env_id}: {last['frames']} frames in {last['seconds']:.0f} s "
         f"({last['frames'] / last['seconds']:.0f} frames/s); last batch: return {last['episode_return']:.2f}, "
