@@ -1,25 +1,27 @@
-"""The README's code blocks run."""
+"""The README's code blocks run, with the two of docs/usage.md that continue its loop example."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README, USAGE = ROOT / "README.md", ROOT / "docs" / "usage.md"
 
 
 def test_readme_loop_example_runs(capsys):
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    text = README.read_text() + USAGE.read_text()  # the loop example first, then what continues it
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
     loop = [b for b in blocks if "SpoilDICELoss(" in b]
     assert loop, "the README lost its training-loop example"
     namespace: dict = {}
     exec(compile(loop[0], "README.md", "exec"), namespace)
     assert "lagrange" in capsys.readouterr().out
     trainer = [b for b in blocks if "offline_trainer(" in b]
-    assert trainer, "the README lost its Trainer example"
+    assert trainer, "docs/usage.md lost its Trainer example"
     exec(compile(trainer[0], "README.md", "exec"), namespace)
     assert "steps done: 20" in capsys.readouterr().out
     diagnostics = [b for b in blocks if "dice_diagnostics(" in b]
-    assert diagnostics, "the README lost its diagnostics example"
+    assert diagnostics, "docs/usage.md lost its diagnostics example"
     exec(compile(diagnostics[0], "README.md", "exec"), namespace)
     assert "of the weight mass sits on transitions with true cost > 0" in capsys.readouterr().out

@@ -142,8 +142,9 @@ def plot_tradeoff(
         span = max(y_hi) - min(y_lo)
         ax.set_ylim(min(y_lo) - 0.08 * span - 0.01, max(y_hi) + 0.08 * span + 0.01)
         ax.set_xlim(0, x_max)
-        ax.set_xticks([t for t in COST_TICKS if t <= x_max])
-        ax.set_xticklabels([f"{t:g}" for t in COST_TICKS if t <= x_max])
+        ticks = _spread_ticks(x_max)
+        ax.set_xticks(ticks)
+        ax.set_xticklabels([f"{t:g}" for t in ticks])
         ax.set_xlabel("normalised cost (square-root scale)")
         ax.set_ylabel("normalised feasible return")
         ax.set_title(dataset, fontsize=10)
@@ -154,6 +155,20 @@ def plot_tradeoff(
     _shared_legend(fig, algos, names, order, extra=[safe])
     fig.tight_layout(rect=(0, 0.07 if len(axes) > 1 else 0.12, 1, 1))
     _save(plt, fig, path)
+
+
+def _spread_ticks(x_max: float, gap: float = 0.1) -> list[float]:
+    """The :data:`COST_TICKS` up to ``x_max`` that lie at least ``gap`` of the axis apart on the square-root
+    scale (labels never overlap).
+
+    >>> _spread_ticks(1.6), _spread_ticks(8.0)
+    ([0, 0.1, 0.25, 0.5, 1], [0, 0.1, 0.5, 1, 2, 4, 8])
+    """
+    kept: list[float] = []
+    for tick in (t for t in COST_TICKS if t <= x_max):
+        if not kept or (math.sqrt(tick) - math.sqrt(kept[-1])) / math.sqrt(x_max) >= gap:
+            kept.append(tick)
+    return kept
 
 
 def _sqrt(x):
