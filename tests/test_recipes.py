@@ -36,7 +36,9 @@ def test_tabular_recipe_end_to_end(tmp_path):
         assert result["policies"]["BC (d_P)"]["cost"] > 0.05  # the performant data are unsafe
         assert result["tv_bc_vs_exact"] > 0.2
     assert list(tmp_path.rglob("*.csv")), "the TorchRL CSV logger wrote nothing"
-    assert "\x1b" not in proc.stdout + proc.stderr  # no ANSI colour codes (TorchRL's logger is routed plainly)
+    assert (
+        "\x1b" not in proc.stdout + proc.stderr
+    )  # no ANSI colour codes (TorchRL's logger is routed plainly)
     assert "| SpoilDICE neural |" in (tmp_path / "tabular_spoildice.log").read_text()  # Hydra's run log
 
 

@@ -5,12 +5,12 @@ TorchRL's :class:`~torchrl.trainers.Trainer` is built around a data collector: i
 counts the collected frames, and runs ``optim_steps_per_batch`` optimisation steps per collected batch. Offline
 there is nothing to collect, so :class:`OfflineBatchSource` yields empty TensorDicts whose batch size is the
 number of optimisation steps they stand for: the Trainer's frame counter then counts optimisation steps, its
-logging interval and hooks work unchanged (the progress bar is our labelled :class:`StepProgress`), and every optimisation step draws its own batch from
-the replay buffers through a ``process_optim_batch`` hook (:class:`SampleBuffers`). :class:`MultiLossStepper`
-(a TorchRL :class:`~torchrl.trainers.OptimizationStepper`) evaluates several LossModules in order on that batch
-and steps all their optimisers; because each ``loss_*`` term reaches only its own parameters (TorchRL's
-convention, tested for every loss of this package), one backward pass through their sum equals one backward
-pass per optimiser.
+logging interval and hooks work unchanged (the progress bar is our labelled :class:`StepProgress`), and every
+optimisation step draws its own batch from the replay buffers through a ``process_optim_batch`` hook
+(:class:`SampleBuffers`). :class:`MultiLossStepper` (a TorchRL :class:`~torchrl.trainers.OptimizationStepper`)
+evaluates several LossModules in order on that batch and steps all their optimisers; because each ``loss_*`` term
+reaches only its own parameters (TorchRL's convention, tested for every loss of this package), one backward pass
+through their sum equals one backward pass per optimiser.
 """
 
 from __future__ import annotations
