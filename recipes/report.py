@@ -28,28 +28,10 @@ from pathlib import Path
 import torch
 
 from spoil_torchrl.eval import mean_stderr
-from spoil_torchrl.eval.figures import plot_learning_curves, plot_tradeoff
+from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
 from spoil_torchrl.trainers.run_dir import run_status
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
-
-#: The paper's column order (Table 1) and names; algorithms not listed follow, sorted.
-ALGORITHM_NAMES = {
-    "bc": "BC",
-    "fbc": "FBC",
-    "jfbc": "JFBC",
-    "demodice_s": "DemoDICE-S",
-    "demodice_u": "DemoDICE-U",
-    "dwbc_s": "DWBC-S",
-    "safedice": "SafeDICE",
-    "coptidice": "COptiDICE",
-    "spoildice": "SpoilDICE",
-}
-
-
-def _algo_order(algo: str) -> tuple[int, str]:
-    names = list(ALGORITHM_NAMES)
-    return (names.index(algo) if algo in names else len(names), algo)
 
 
 def _train_settings(results_path: Path) -> str | None:
@@ -154,7 +136,7 @@ def markdown(summary: dict[tuple[str, str], dict]) -> str:
             "per seed (feasible return / cost) | nu's share / weight on cost > 0 |",
             "|---|---|---|---|---|---|---|",
         ]
-        for algo in sorted((a for d, a in summary if d == dataset), key=_algo_order):
+        for algo in sorted((a for d, a in summary if d == dataset), key=algorithm_order):
             row = summary[(dataset, algo)]
             safe = row["normalized_cost"][0] <= 1.0
             per_seed = ", ".join(f"{f:.2f} / {c:.2f}" for f, c in row["per_seed"])
@@ -224,14 +206,11 @@ def main() -> None:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
-    order = list(ALGORITHM_NAMES)
     if args.plot:
-        plot_tradeoff(summary, args.plot, names=ALGORITHM_NAMES, order=order)
+        plot_tradeoff(summary, args.plot)
     if args.curves:
         seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
-        plot_learning_curves(
-            learning_curves(runs), args.curves, seeds=seeds, names=ALGORITHM_NAMES, order=order
-        )
+        plot_learning_curves(learning_curves(runs), args.curves, seeds=seeds)
 
 
 if __name__ == "__main__":

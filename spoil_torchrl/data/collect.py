@@ -175,16 +175,23 @@ def episode_totals(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarra
     return rewards, costs
 
 
+def reference_policies(env_id: str) -> dict[str, str | None]:
+    """The policies whose mean returns normalise a generated dataset's returns: the random policy, and the
+    committed ``safe-high`` policy where the task has one (``None`` where it has not)."""
+    from spoil_torchrl.experts.policies import zoo_names
+
+    safe_high = "zoo:safe-high" if "safe-high" in zoo_names(env_id) else None
+    return {"random_return": RANDOM_POLICY, "safe_high_return": safe_high}
+
+
 def reference_returns(
     env_id: str, *, episodes: int = 10, seed: int = 0, progress: bool = True, bar: tqdm | None = None
 ) -> dict:
-    """Mean returns of the random policy and of the committed ``safe-high`` policy (``None`` if the task has
-    none): the task's return normalisation ``(R - random) / (safe_high - random)`` for generated data."""
-    from spoil_torchrl.experts.policies import zoo_names
-
+    """Mean returns of the :func:`reference_policies` (``None`` for a missing one): the task's return
+    normalisation ``(R - random) / (safe_high - random)`` for generated data."""
     out = {}
-    for name, spec in (("random_return", RANDOM_POLICY), ("safe_high_return", "zoo:safe-high")):
-        if spec != RANDOM_POLICY and "safe-high" not in zoo_names(env_id):
+    for name, spec in reference_policies(env_id).items():
+        if spec is None:
             out[name] = None
             continue
         arrays = rollout(
@@ -238,9 +245,8 @@ def collect(
     start_time = time.perf_counter()
     parts, records, first = [], [], 0
     # one bar over every segment and the reference rollouts, so that its estimate is the whole job's
-    from spoil_torchrl.experts.policies import zoo_names
-
-    reference_rollouts = reference_episodes * (1 + ("safe-high" in zoo_names(env_id)))  # random (+ safe-high)
+    policies = reference_policies(env_id).values()
+    reference_rollouts = reference_episodes * sum(spec is not None for spec in policies)
     total = (sum(segment.episodes for segment in segments) + reference_rollouts) * task.episode_length
     bar = tqdm(
         total=total, desc=f"collecting {env_id}", disable=not progress, unit="step", dynamic_ncols=True

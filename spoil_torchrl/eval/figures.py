@@ -26,24 +26,31 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["algorithm_style", "plot_learning_curves", "plot_tradeoff"]
+__all__ = ["ALGORITHM_NAMES", "algorithm_order", "algorithm_style", "plot_learning_curves", "plot_tradeoff"]
 
 #: Fixed colours and markers, in the paper's column order; later algorithms take the following ones.
 _COLOURS = ("#1f77b4", "#ff7f0e", "#8c564b", "#2ca02c", "#9467bd", "#e377c2", "#7f7f7f", "#bcbd22", "#d62728")
 _MARKERS = ("o", "s", "v", "D", "^", "P", "X", "<", "*")
 #: x ticks of the trade-off panels (square-root scale: evenly spread near 0, sparse far out)
 COST_TICKS = (0, 0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32)
-PAPER_ORDER = (
-    "bc",
-    "fbc",
-    "jfbc",
-    "demodice_s",
-    "demodice_u",
-    "dwbc_s",
-    "safedice",
-    "coptidice",
-    "spoildice",
-)
+#: The paper's column order (Table 1) and display names; algorithms not listed follow, sorted.
+ALGORITHM_NAMES = {
+    "bc": "BC",
+    "fbc": "FBC",
+    "jfbc": "JFBC",
+    "demodice_s": "DemoDICE-S",
+    "demodice_u": "DemoDICE-U",
+    "dwbc_s": "DWBC-S",
+    "safedice": "SafeDICE",
+    "coptidice": "COptiDICE",
+    "spoildice": "SpoilDICE",
+}
+PAPER_ORDER = tuple(ALGORITHM_NAMES)
+
+
+def algorithm_order(algo: str, order: Sequence[str] = PAPER_ORDER) -> tuple[int, str]:
+    """Sort key: the paper's column order, then any other algorithm by name."""
+    return (order.index(algo) if algo in order else len(order), algo)
 
 
 def algorithm_style(algo: str, order: Sequence[str] = PAPER_ORDER) -> dict:
@@ -72,8 +79,7 @@ def _grid(plt, panels: int, rows_per_panel: int = 1, width: float = 4.6, height:
 
 def _datasets_and_algos(keys, order: Sequence[str]) -> tuple[list[str], list[str]]:
     datasets = sorted({d for d, _ in keys})
-    rank = {a: i for i, a in enumerate(order)}
-    algos = sorted({a for _, a in keys}, key=lambda a: (rank.get(a, len(rank)), a))
+    algos = sorted({a for _, a in keys}, key=lambda a: algorithm_order(a, order))
     return datasets, algos
 
 
@@ -111,7 +117,7 @@ def plot_tradeoff(
     """
     from matplotlib.patches import Patch
 
-    plt, names = _pyplot(), dict(names or {})
+    plt, names = _pyplot(), dict(ALGORITHM_NAMES if names is None else names)
     datasets, algos = _datasets_and_algos(summary, order)
     fig, axes, cols = _grid(plt, len(datasets))
     for i, dataset in enumerate(datasets):
@@ -197,7 +203,7 @@ def plot_learning_curves(
     """
     from matplotlib.lines import Line2D
 
-    plt, names = _pyplot(), dict(names or {})
+    plt, names = _pyplot(), dict(ALGORITHM_NAMES if names is None else names)
     datasets, algos = _datasets_and_algos(curves, order)
     fig, axes, cols = _grid(plt, len(datasets), rows_per_panel=2, height=3.0)
     metrics = (
@@ -227,9 +233,8 @@ def plot_learning_curves(
                     alpha=0.15,
                     linewidth=0,
                 )
-        seeds_text = f" ({min(counts)}-{max(counts)} seeds)" if counts and min(counts) != max(counts) else ""
-        if counts and min(counts) == max(counts):
-            seeds_text = f" ({counts[0]} seeds)"
+        low, high = (min(counts), max(counts)) if counts else (None, None)
+        seeds_text = "" if low is None else f" ({low} seeds)" if low == high else f" ({low}-{high} seeds)"
         axes[top][col].set_title(dataset + seeds_text, fontsize=10)
         for row, (_, label) in enumerate(metrics):
             axes[top + row][col].set_ylabel(label)
