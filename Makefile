@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
 # Extras installed by the set-up; EXTRAS=dev skips the simulators (their tests then skip).
-EXTRAS ?= dev,safety,launchers,tensorboard,wandb
+EXTRAS ?= dev,safety,launchers,tensorboard,wandb,minari
 SAFETY_GYMNASIUM ?= safety-gymnasium==1.0.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.spoil_torchrl-installed

@@ -16,6 +16,7 @@ from spoil_torchrl.data.generated import (
     DEFAULT_DATASET,
     GENERATED_DATASETS,
     ensure_generated,
+    generated_data_dir,
     generated_path,
     get_generated,
 )
@@ -34,9 +35,9 @@ from spoil_torchrl.data.labeling import (
 from spoil_torchrl.data.load import (
     dsrl_cache_dir,
     fetch_dsrl,
-    generated_data_dir,
     load_episodes,
     parse_source,
+    read_source_metadata,
 )
 
 __all__ = [
@@ -69,6 +70,7 @@ __all__ = [
     "parse_source",
     "read_dsrl_file",
     "read_metadata",
+    "read_source_metadata",
     "replay_subsets",
     "select_episodes",
     "sha256_of",

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -102,11 +103,30 @@ def get_generated(name: str) -> GeneratedDataset:
     return GENERATED_DATASETS[name]
 
 
+def generated_data_dir() -> Path:
+    """``$SPOIL_TORCHRL_DATA_DIR`` if set, else ``~/.cache/spoil_torchrl/generated``."""
+    default = Path.home() / ".cache" / "spoil_torchrl" / "generated"
+    return Path(os.environ.get("SPOIL_TORCHRL_DATA_DIR", default)).expanduser()
+
+
 def generated_path(name: str) -> Path:
     """Where the dataset ``name`` is cached (it may not exist yet)."""
-    from spoil_torchrl.data.load import generated_data_dir
-
     return generated_data_dir() / f"{name}.hdf5"
+
+
+def missing_generated_error(name: str) -> str:
+    """What to do about a generated dataset ``name`` that is not in :func:`generated_data_dir`."""
+    if name in GENERATED_DATASETS:
+        how = f"make it with `python recipes/collect_demos.py name={name}`"
+    else:
+        how = (
+            f"it is not one of the known generated datasets ({', '.join(GENERATED_DATASETS)}); add it to "
+            "spoil_torchrl/data/generated.py and make it with recipes/collect_demos.py"
+        )
+    return (
+        f"generated dataset {name!r} not found at {generated_path(name)}; {how} "
+        "(or set SPOIL_TORCHRL_DATA_DIR to where it lives)"
+    )
 
 
 def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progress: bool = True) -> Path:

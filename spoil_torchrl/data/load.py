@@ -7,7 +7,10 @@ Sources:
   ``$DSRL_DATASET_DIR`` or ``~/.dsrl/datasets`` (the ``dsrl`` package's own cache, so existing downloads are
   reused) and downloaded there otherwise;
 * ``"generated:<name>"`` -- datasets made by this project's collection pipeline, in ``$SPOIL_TORCHRL_DATA_DIR``
-  or ``~/.cache/spoil_torchrl/generated`` as ``<name>.hdf5`` (same layout plus metadata).
+  or ``~/.cache/spoil_torchrl/generated`` as ``<name>.hdf5`` (same layout plus metadata);
+* ``"minari:<dataset id>"`` -- a Minari dataset with per-step costs (:mod:`spoil_torchrl.data.minari_io`), in
+  ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``, downloaded from Minari's remote otherwise (extra
+  ``[minari]``).
 """
 
 from __future__ import annotations
@@ -19,21 +22,16 @@ from tensordict import TensorDict
 
 from spoil_torchrl.data.download import download
 from spoil_torchrl.data.episodes import DatasetError
-from spoil_torchrl.data.hdf5 import _open, read_dsrl_file
+from spoil_torchrl.data.generated import generated_path, missing_generated_error
+from spoil_torchrl.data.hdf5 import _open, read_dsrl_file, read_metadata
 from spoil_torchrl.tasks import DSRLDataset, get_dsrl_dataset
 
-SCHEMES = ("file", "dsrl", "generated")
+SCHEMES = ("file", "dsrl", "generated", "minari")
 
 
 def dsrl_cache_dir() -> Path:
     """``$DSRL_DATASET_DIR`` if set, else ``~/.dsrl/datasets`` (where the ``dsrl`` package caches files)."""
     return Path(os.environ.get("DSRL_DATASET_DIR", Path.home() / ".dsrl" / "datasets")).expanduser()
-
-
-def generated_data_dir() -> Path:
-    """``$SPOIL_TORCHRL_DATA_DIR`` if set, else ``~/.cache/spoil_torchrl/generated``."""
-    default = Path.home() / ".cache" / "spoil_torchrl" / "generated"
-    return Path(os.environ.get("SPOIL_TORCHRL_DATA_DIR", default)).expanduser()
 
 
 def _check_hdf5(path: Path) -> None:
@@ -69,11 +67,13 @@ def load_episodes(
     """Load a dataset as TED-layout transitions with ``episode`` ids and ``is_init`` flags.
 
     Args:
-        source: ``"file:<path>"``, ``"dsrl:<dataset id>"`` or ``"generated:<name>"`` (see module docstring).
+        source: ``"file:<path>"``, ``"dsrl:<dataset id>"``, ``"generated:<name>"`` or ``"minari:<dataset id>"``
+            (see module docstring).
         memmap_dir: keep the arrays memory-mapped in this folder instead of RAM.
         progress: show a progress bar while downloading.
 
-    For DSRL datasets the observation / action sizes are checked against the task table.
+    For DSRL datasets the observation / action sizes are checked against the task table. Minari datasets are
+    read into RAM (``memmap_dir`` does not apply to them).
     """
     scheme, rest = parse_source(source)
     if scheme == "file":
@@ -87,19 +87,28 @@ def load_episodes(
             action_dim=dataset.action_dim,
             memmap_dir=memmap_dir,
         )
-    path = generated_data_dir() / f"{rest}.hdf5"
-    if not path.exists():
-        from spoil_torchrl.data.generated import GENERATED_DATASETS
+    if scheme == "minari":
+        from spoil_torchrl.data.minari_io import read_minari
 
-        if rest in GENERATED_DATASETS:
-            how = f"make it with `python recipes/collect_demos.py name={rest}`"
-        else:
-            how = (
-                f"it is not one of the known generated datasets ({', '.join(GENERATED_DATASETS)}); add it to "
-                "spoil_torchrl/data/generated.py and make it with recipes/collect_demos.py"
-            )
-        raise DatasetError(
-            f"generated dataset {rest!r} not found at {path}; {how} "
-            "(or set SPOIL_TORCHRL_DATA_DIR to where it lives)"
-        )
+        return read_minari(rest)
+    path = generated_path(rest)
+    if not path.exists():
+        raise DatasetError(missing_generated_error(rest))
     return read_dsrl_file(path, memmap_dir=memmap_dir)
+
+
+def read_source_metadata(source: str) -> dict:
+    """The metadata a source carries: this project's JSON metadata of a ``file:`` / ``generated:`` HDF5 file
+    (``{}`` for a plain DSRL file), the ``spoil_torchrl`` entry of a ``minari:`` dataset (see
+    :func:`~spoil_torchrl.data.minari_io.read_minari_metadata`), ``{}`` for ``dsrl:`` (the task table has its
+    constants). The data must have been loaded (or made) first."""
+    scheme, rest = parse_source(source)
+    if scheme == "file":
+        return read_metadata(Path(rest).expanduser())
+    if scheme == "generated":
+        return read_metadata(generated_path(rest))
+    if scheme == "minari":
+        from spoil_torchrl.data.minari_io import read_minari_metadata
+
+        return read_minari_metadata(rest)
+    return {}

@@ -12,12 +12,11 @@ from tensordict import TensorDict
 from spoil_torchrl.data.collect import segment_pools
 from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.generated import ensure_generated
-from spoil_torchrl.data.hdf5 import read_metadata
 from spoil_torchrl.data.labeling import controlled_mix, draw, episode_stats, label_ilsp
-from spoil_torchrl.data.load import load_episodes, parse_source
+from spoil_torchrl.data.load import load_episodes, parse_source, read_source_metadata
 from spoil_torchrl.tasks import ENV_TASKS, get_dsrl_dataset
 
-SCHEMES = ("ilsp", "controlled")
+SCHEMES = ("ilsp", "controlled", "stored")
 EXTRA_ROLES = ("nonpreferred",)
 
 
@@ -52,7 +51,7 @@ class PreparedDataset:
 
 
 def _source_constants(source: str, metadata: dict) -> tuple[str | None, float | None, tuple | None]:
-    """(env_id, cost threshold, return range) a source implies: generated metadata or the DSRL table."""
+    """(env_id, cost threshold, return range) a source implies: its metadata or the DSRL table."""
     scheme, rest = parse_source(source)
     if scheme == "dsrl":
         d = get_dsrl_dataset(rest)
@@ -60,8 +59,8 @@ def _source_constants(source: str, metadata: dict) -> tuple[str | None, float | 
         return env, d.cost_threshold, (d.min_return, d.max_return)
     if metadata.get("random_return") is not None and metadata.get("safe_high_return") is not None:
         rng = (metadata["random_return"], metadata["safe_high_return"])
-    else:
-        rng = None
+    else:  # a Minari dataset's reference scores, when it has them
+        rng = metadata.get("return_range")
     return metadata.get("env_id"), metadata.get("cost_threshold"), rng
 
 
@@ -82,6 +81,9 @@ def select_roles(
       independent: an episode that is both safe and performant may be in both (F.1's labels overlap).
     * ``"controlled"`` (F.2): :func:`~spoil_torchrl.data.controlled_mix` of the file's policy-type pools with
       ``performance`` (share of safe-high in D_S) and ``safeness`` (share of safe-high in D_P).
+    * ``"stored"``: the roles stored with the data (``metadata["roles"]``: episode ids per role, e.g. a Minari
+      dataset exported with its roles or labelled by hand with ``role_safe`` / ``role_performant`` /
+      ``role_unlabeled`` episode flags); ``seed`` and the ``n_*`` sizes do not apply.
 
     ``extra_roles`` may hold ``"nonpreferred"`` (D_N, for SafeDICE): the *unsafe* episodes of D_U (episode
     cost above ``cost_threshold``, F.1's non-preferred label), all of them (the paper, section 5.2.1: "we use
@@ -121,12 +123,33 @@ def _nonpreferred(
     return draw(unsafe, int(k), seed=seed + 3)
 
 
+def _stored_roles(metadata: Mapping) -> dict[str, torch.Tensor]:
+    """D_S, D_P, D_U as stored with the data (``metadata["roles"]``), see :func:`select_roles`."""
+    stored = metadata.get("roles") or {}
+    missing = [role for role in ("safe", "performant", "unlabeled") if role not in stored]
+    if missing:
+        raise DatasetError(
+            f"dataset.scheme=stored, but the dataset stores no {missing[0]!r} role (it has "
+            f"{sorted(stored) or 'none'}); export it with its roles (recipes/export_minari.py) or use "
+            "scheme=ilsp / controlled"
+        )
+    roles = {
+        role: torch.as_tensor(stored[role], dtype=torch.int64) for role in ("safe", "performant", "unlabeled")
+    }
+    empty = [role for role, ids in roles.items() if ids.numel() == 0]
+    if empty:
+        raise DatasetError(f"the stored role {empty[0]!r} has no episode")
+    return roles
+
+
 def _base_roles(
     episodes: TensorDict, cfg: Mapping, *, cost_threshold: float, metadata: Mapping, seed: int
 ) -> dict[str, torch.Tensor]:
     """D_S, D_P, D_U of ``cfg["scheme"]`` (see :func:`select_roles`)."""
     scheme = cfg["scheme"]
     n_unlabeled = cfg.get("n_unlabeled")
+    if scheme == "stored":
+        return _stored_roles(metadata)
     if scheme == "controlled":
         return controlled_mix(
             segment_pools(dict(metadata)),
@@ -171,11 +194,7 @@ def prepare_dataset(
     if scheme == "generated" and cfg.get("generate", True):
         ensure_generated(rest, progress=progress)
     episodes = load_episodes(source, progress=progress)
-    metadata = read_metadata(rest) if scheme == "file" else {}
-    if scheme == "generated":
-        from spoil_torchrl.data.generated import generated_path
-
-        metadata = read_metadata(generated_path(rest))
+    metadata = read_source_metadata(source)
     source_env, source_threshold, source_range = _source_constants(source, metadata)
     if env_id is not None and source_env is not None and source_env != env_id:
         raise DatasetError(f"dataset {source} was recorded in {source_env}, but the task is {env_id}")

@@ -13,6 +13,8 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from spoil_torchrl.data.prepare import SCHEMES
+
 
 class SettingsError(ValueError):
     """A setting with a value it cannot have."""
@@ -86,7 +88,7 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "safeness": (_unit, "a share in [0, 1]"),
     "return_quantile": (_unit, "a quantile in [0, 1]"),
     "cost_threshold": (_optional(_non_negative), "null or a number >= 0"),
-    "scheme": (lambda v: v in ("ilsp", "controlled"), "ilsp or controlled"),
+    "scheme": (lambda v: v in SCHEMES, " or ".join(SCHEMES)),
 }
 
 
