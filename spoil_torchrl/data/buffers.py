@@ -31,8 +31,9 @@ class DualDemoBuffers:
     Each role's transitions (selected from ``episodes`` by episode ids) live in a TorchRL
     :class:`~torchrl.data.TensorDictReplayBuffer` whose storage wraps them without a further copy (a role that
     holds every episode shares the dataset's own memory, memory-mapped or not). The ``"init"`` buffer holds the
-    first observation of each episode of ``init_role`` (:math:`\\rho_0`, REFERENCES section 2). Sampling is
-    uniform with replacement and reproducible: buffer ``i`` draws from ``torch.Generator().manual_seed(seed + i)``.
+    first observation of each episode of ``init_role`` (:math:`\\rho_0`, the initial-state term of the DICE
+    duals). Sampling is uniform with replacement and reproducible: buffer ``i`` draws from
+    ``torch.Generator().manual_seed(seed + i)``.
 
     Args:
         episodes: TED-layout transitions with ``episode`` and ``is_init`` (from

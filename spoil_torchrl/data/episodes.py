@@ -1,6 +1,6 @@
 """Flat DSRL-layout arrays -> one TensorDict of transitions in TorchRL's TED layout, with episode ids.
 
-Keys of the result (DESIGN.md "Keys"): ``observation``, ``action``, ``("next", "observation")``,
+Keys of the result: ``observation``, ``action``, ``("next", "observation")``,
 ``("next", "reward")``, ``("next", "cost")`` (float32, trailing dim 1), ``("next", "terminated")``,
 ``("next", "truncated")``, ``("next", "done")`` (bool, trailing dim 1), ``episode`` (int64) and ``is_init``
 (bool, trailing dim 1). A step cut by a time limit keeps its real next observation.

@@ -1,4 +1,4 @@
-"""Evaluation metrics against hand-computed episodes (paper 5.2, REFERENCES section 3)."""
+"""Evaluation metrics against hand-computed episodes (paper 5.2)."""
 
 from __future__ import annotations
 
