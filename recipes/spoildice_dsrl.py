@@ -190,6 +190,7 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
         episodes=int(train.eval_episodes),
         seed=10_000 + int(cfg.seed),
         num_envs=int(cfg.task.eval_num_envs),
+        frames=bool(OmegaConf.select(cfg, "eval.frames", default=False)),
     )
     # TorchRL logger, labelled by dataset / algo / seed, with the settings as hyper-parameters
     logger, tracking = make_logger(

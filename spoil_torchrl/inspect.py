@@ -15,7 +15,8 @@ import math
 import sys
 from pathlib import Path
 
-from spoil_torchrl.eval.mcap_io import MCAP_MAGIC, RolloutFileError, Rollouts, read_rollouts
+from spoil_torchrl.eval.mcap_reader import Rollouts, read_rollouts
+from spoil_torchrl.eval.mcap_schemas import MCAP_MAGIC, RolloutFileError
 
 COLUMNS = (
     ("eval step", "evaluation_step"),

@@ -65,6 +65,12 @@ def _derive_seed(seed: int, *keys: int) -> int:
     return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
 
 
+def reset_seed(seed: int, env_index: int) -> int:
+    """The seed :func:`rollout` (with ``seed``) resets its environment ``env_index`` with, once, at the start;
+    later episodes of that environment continue its random stream unseeded. Replays of a rollout start here."""
+    return _derive_seed(seed, 3, env_index)
+
+
 def rollout(
     env_id: str,
     policy: ProbabilisticActor | None,
@@ -104,7 +110,7 @@ def rollout(
     envs = [make_safety_gymnasium(env_id) for _ in range(min(num_envs, episodes))]
     rng = np.random.default_rng(_derive_seed(seed, 1))
     device = next(iter(policy.parameters())).device if policy is not None else torch.device("cpu")
-    obs = [env.reset(seed=_derive_seed(seed, 3, i))[0] for i, env in enumerate(envs)]
+    obs = [env.reset(seed=reset_seed(seed, i))[0] for i, env in enumerate(envs)]
     steps: list[list[tuple]] = [[] for _ in envs]
     finished: list[list[tuple]] = []
     active, started = list(range(len(envs))), len(envs)

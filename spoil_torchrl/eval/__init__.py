@@ -1,20 +1,21 @@
 """Evaluation: metrics of the paper's section 5.2 and MCAP rollout files.
 
-:class:`Evaluator` runs a policy in the task's real environment and reports them (and writes MCAP).
+:class:`Evaluator` runs a policy in the task's real environment and reports them (and writes MCAP:
+:mod:`~spoil_torchrl.eval.mcap_schemas` describes the file, which Foxglove opens with
+``docs/foxglove/rollouts_layout.json``).
 """
 
 from spoil_torchrl.eval.evaluator import Evaluator, pad_episodes
-from spoil_torchrl.eval.mcap_io import (
+from spoil_torchrl.eval.mcap_reader import Rollouts, read_rollouts
+from spoil_torchrl.eval.mcap_schemas import (
     EPISODE_SCHEMA,
     EPISODE_TOPIC,
     METADATA_NAME,
     STEP_SCHEMA,
     STEP_TOPIC,
     RolloutFileError,
-    Rollouts,
-    RolloutWriter,
-    read_rollouts,
 )
+from spoil_torchrl.eval.mcap_writer import RolloutWriter
 from spoil_torchrl.eval.metrics import (
     SeedAggregate,
     aggregate_over_seeds,

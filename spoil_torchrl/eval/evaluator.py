@@ -10,7 +10,8 @@ import torch
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
-from spoil_torchrl.eval.mcap_io import RolloutWriter
+from spoil_torchrl.eval.env_scene import make_render_env, replay_episodes, task_view
+from spoil_torchrl.eval.mcap_writer import RolloutWriter
 from spoil_torchrl.eval.metrics import episode_metrics
 
 #: Per-evaluation metrics (means over the evaluation's episodes) that :class:`Evaluator` reports.
@@ -76,6 +77,12 @@ class Evaluator:
     variant, normalised return / feasible return / cost), writes every episode to ``writer`` (an MCAP
     :class:`~spoil_torchrl.eval.RolloutWriter`) when given, and returns the means over episodes.
 
+    In the file, steps are logged on simulation time (the task's control timestep), each episode starts with
+    the task's constraint geometry (``/eval/scene``), and with ``poses`` every step carries the agent's pose
+    (``/tf``), with ``frames`` a rendered JPEG frame (``/eval/camera``). Poses and frames come from replaying
+    the episodes' actions (:func:`~spoil_torchrl.eval.env_scene.replay_episodes`), so the metrics' rollout
+    is the same with or without them.
+
     Args:
         env_id: task of :data:`spoil_torchrl.tasks.ENV_TASKS`.
         cost_threshold: threshold of the feasible return and the normalised cost.
@@ -83,6 +90,10 @@ class Evaluator:
         episodes: episodes per evaluation.
         seed: environment seed of every evaluation.
         writer: where to write the episodes (optional).
+        poses: write the agent's pose at every step (default on).
+        frames: write a rendered ``frame_size`` square frame at every step (default off; needs an off-screen
+            OpenGL context, checked here: :func:`~spoil_torchrl.eval.env_scene.make_render_env`).
+        frame_size: width and height of the frames in pixels.
     """
 
     def __init__(
@@ -95,6 +106,9 @@ class Evaluator:
         seed: int = 0,
         num_envs: int = 10,
         writer: RolloutWriter | None = None,
+        poses: bool = True,
+        frames: bool = False,
+        frame_size: int = 256,
     ) -> None:
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -110,6 +124,9 @@ class Evaluator:
         self.seed = int(seed)
         self.num_envs = int(num_envs)
         self.writer = writer
+        self.poses, self.frames, self.frame_size = bool(poses), bool(frames), int(frame_size)
+        if self.frames:  # fail now, not at the first evaluation
+            make_render_env(env_id, self.frame_size).close()
 
     def __call__(self, policy: ProbabilisticActor, step: int = 0) -> dict:
         """Evaluate ``policy``; returns ``{"step", <metric>: mean over episodes, "episodes": per-episode lists}``."""
@@ -132,9 +149,27 @@ class Evaluator:
         padded = pad_episodes(arrays)
         metrics = episode_metrics(padded, self.cost_threshold, return_range=self.return_range)
         if self.writer is not None:
+            view = task_view(self.env_id)
+            poses = frames = [None] * padded.shape[0]
+            if self.poses or self.frames:
+                poses, frames = replay_episodes(
+                    self.env_id,
+                    arrays,
+                    seed=self.seed,
+                    num_envs=self.num_envs,
+                    frames=self.frames,
+                    frame_size=self.frame_size,
+                )
             for e in range(padded.shape[0]):
                 n = int(metrics["length"][e])
-                self.writer.write_episode(padded[e, :n], evaluation_step=step)
+                self.writer.write_episode(
+                    padded[e, :n],
+                    evaluation_step=step,
+                    dt=view.dt,
+                    scene=view.scene,
+                    poses=poses[e] if self.poses else None,
+                    frames=frames[e],
+                )
         result = {"step": int(step)}
         result.update({key: float(metrics[key].mean()) for key in METRICS})
         result["episodes"] = {key: metrics[key].tolist() for key in (*METRICS, "length")}

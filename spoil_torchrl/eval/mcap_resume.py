@@ -6,17 +6,24 @@ A run killed mid-way leaves ``rollouts.mcap`` without its footer; its complete e
 episodes of the evaluations up to ``k`` (those after ``k`` belong to an evaluation that the resumed run does
 again), then takes the new episodes. The old file is kept as ``<name>.before-resume`` until the copy is
 complete, so a run killed again while copying loses nothing either.
+
+The copy is message for message: every topic the writer knows (steps, summaries, poses, scenes, frames) with
+its log time, up to the end of the last episode kept; the new episodes continue the simulation-time axis
+after it, so log times stay monotonic across the resume.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from spoil_torchrl.eval.mcap_io import RolloutWriter, read_rollouts
+from spoil_torchrl.eval.mcap_reader import iter_messages, read_rollouts
+from spoil_torchrl.eval.mcap_schemas import EPISODE_TOPIC, STEP_TOPIC
+from spoil_torchrl.eval.mcap_writer import TOPIC_SCHEMAS, RolloutWriter
 
 BACKUP_SUFFIX = ".before-resume"
 
@@ -29,7 +36,8 @@ def continue_rollouts(
     metadata: Mapping[str, Any] | None = None,
 ) -> RolloutWriter:
     """A :class:`RolloutWriter` on ``path`` that already holds the earlier file's complete episodes whose
-    ``evaluation_step <= until_step`` (in their order, with the same content); use it as a context manager.
+    ``evaluation_step <= until_step`` (in their order, with the same content and log times); use it as a
+    context manager.
 
     Examples:
         >>> import tempfile
@@ -56,13 +64,29 @@ def continue_rollouts(
     writer = RolloutWriter(path, cost_threshold=cost_threshold, metadata=metadata)
     try:
         if old is not None:
-            for e in range(old.episodes.batch_size[0]):
-                step = int(old.episodes["evaluation_step"][e])
-                if step <= until_step:
-                    length = int(old.episodes["length"][e])
-                    writer.write_episode(old.steps[e, :length], evaluation_step=step)
+            _copy_episodes(backup, old, until_step, writer)
     except BaseException:
         writer.finish()
         raise
     backup.unlink(missing_ok=True)
     return writer
+
+
+def _copy_episodes(source: Path, old, until_step: int, writer: RolloutWriter) -> None:
+    """Copy ``source``'s messages of its complete episodes up to ``until_step`` into ``writer``, as they are."""
+    episodes = old.episodes
+    keep = episodes["evaluation_step"] <= until_step
+    if not bool(keep.any()):
+        return
+    kept = set(
+        zip(episodes["evaluation_step"][keep].tolist(), episodes["episode"][keep].tolist(), strict=True)
+    )
+    until = int(episodes["log_time"][keep].max())
+    for topic, message in iter_messages(source):
+        if message.log_time > until or topic not in TOPIC_SCHEMAS:
+            continue
+        if topic in (STEP_TOPIC, EPISODE_TOPIC):
+            fields = json.loads(message.data)
+            if (fields.get("evaluation_step", 0), fields["episode"]) not in kept:
+                continue
+        writer.write_raw(topic, message.log_time, message.data)

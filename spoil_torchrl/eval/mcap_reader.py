@@ -1,0 +1,384 @@
+"""Reading evaluation rollout files: :func:`read_rollouts`, which also salvages files whose writer died.
+
+The layout is :mod:`spoil_torchrl.eval.mcap_schemas`'s. Only the step and summary topics are read (the
+Foxglove topics, ``/tf``, ``/eval/scene``, ``/eval/camera``, and any other channel are skipped), so files
+written before those topics existed read the same.
+
+**Salvage.** A file whose writer was killed has no footer and no summary section, and may end inside a
+record. :func:`read_rollouts` reads it with mcap's :class:`~mcap.stream_reader.StreamReader` (chunk CRCs
+checked) and stops at the first truncated or corrupt record, keeping every complete episode before it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import warnings
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from mcap.exceptions import EndOfFile
+from mcap.records import Channel, Footer, Message, Metadata
+from mcap.stream_reader import StreamReader
+from mcap.well_known import MessageEncoding
+from tensordict import TensorDict
+
+from spoil_torchrl.eval.mcap_schemas import (
+    EPISODE_SCHEMA,
+    EPISODE_TOPIC,
+    MCAP_MAGIC,
+    METADATA_NAME,
+    STEP_SCHEMA,
+    STEP_TOPIC,
+    SUMMARY_FLOATS,
+    RolloutFileError,
+)
+from spoil_torchrl.eval.metrics import episode_cost, episode_return, feasible_return, strict_feasible_return
+
+_LOG_TIME = "\0log_time"  # where a decoded message keeps its record's log time (not a JSON field name)
+
+
+@dataclass
+class Rollouts:
+    """What :func:`read_rollouts` returns.
+
+    Attributes:
+        steps: batch size ``[episodes, max_steps]``, padded with zeros after each episode: ``observation``,
+            ``action`` (float32, NaN where the file has ``null``), ``("next", "reward" | "cost" |
+            "cumulative_cost")`` (float32, ``[E, T, 1]``), ``("next", "terminated" | "truncated" | "done")``
+            (bool, ``[E, T, 1]``), ``step``, ``episode``, ``evaluation_step`` (int64) and ``mask`` (bool,
+            True on real steps; a prefix of each row), ``log_time`` (int64 ns, 0 on padding).
+        episodes: batch size ``[episodes]``, the summaries: ``episode``, ``evaluation_step``, ``length``
+            (int64), ``return``, ``cost``, ``feasible_return``, ``strict_feasible_return``, ``cost_threshold``
+            (float64; NaN where unknown or non-finite), ``terminated``, ``truncated`` (bool), ``log_time``
+            (int64 ns: the summary's, the episode's end).
+        metadata: the run metadata record (string values; empty if the file has none).
+        finished: whether the writer finished the file (False: the complete episodes were salvaged).
+        skipped: episodes left out: steps without a summary (in progress when the writer stopped), and in a
+            file that was not finished, episodes whose steps do not match their summary.
+        stop_reason: why reading stopped before the end of a file that was not finished, else ``None``.
+    """
+
+    steps: TensorDict
+    episodes: TensorDict
+    metadata: dict[str, str] = field(default_factory=dict)
+    finished: bool = True
+    skipped: int = 0
+    stop_reason: str | None = None
+
+
+def _type_ok(value: Any, spec: Mapping[str, Any]) -> bool:
+    kind = spec["type"]
+    if kind == "number":
+        return value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
+    if kind == "integer":
+        return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+    if kind == "boolean":
+        return isinstance(value, bool)
+    return isinstance(value, list) and all(_type_ok(v, spec["items"]) for v in value)
+
+
+def _validate(message: Any, schema: Mapping[str, Any], where: str) -> dict:
+    """``message`` checked against ``schema``: required fields present, known fields of the declared type."""
+    if not isinstance(message, dict):
+        raise RolloutFileError(f"{where}: expected a JSON object, got {type(message).__name__}")
+    missing = [k for k in schema["required"] if k not in message]
+    if missing:
+        raise RolloutFileError(f"{where}: missing required field(s) {missing} (schema {schema['title']})")
+    for name, spec in schema["properties"].items():
+        if name in message and not _type_ok(message[name], spec):
+            raise RolloutFileError(
+                f"{where}: field {name!r} = {str(message[name])[:60]} is not of type {spec['type']}"
+                + (" (or null)" if spec["type"] == "number" else "")
+            )
+    return message
+
+
+def _float(value) -> float:
+    return math.nan if value is None else float(value)
+
+
+def _records(path: Path):
+    """Yield the file's records in order; at a truncated or corrupt record, yield ``("stop", reason)`` and end."""
+    with open(path, "rb") as f:
+        records = StreamReader(f, validate_crcs=True).records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                return
+            except (EndOfFile, struct.error):  # a short read: the file stops at or inside a record
+                yield ("stop", "the file ends before the MCAP footer (the writer did not finish it)")
+                return
+            except Exception as err:  # CRC mismatch, zstandard.ZstdError, a damaged length, ...
+                name = f"{type(err).__module__}.{type(err).__qualname__}".removeprefix("builtins.")
+                yield ("stop", f"corrupt record ({name}{': ' + str(err) if str(err) else ''})")
+                return
+            yield record
+
+
+def iter_messages(path: str | os.PathLike) -> Iterator[tuple[str, Message]]:
+    """``(topic, message)`` of every message of an MCAP file in file order, up to the first truncated or
+    corrupt record (a file whose writer died ends there, without an error)."""
+    topics: dict[int, str] = {}
+    for record in _records(Path(path)):
+        if isinstance(record, tuple):
+            return
+        if isinstance(record, Channel):
+            topics[record.id] = record.topic
+        elif isinstance(record, Message) and record.channel_id in topics:
+            yield topics[record.channel_id], record
+
+
+def read_rollouts(
+    path: str | os.PathLike, *, step_topic: str = STEP_TOPIC, episode_topic: str = EPISODE_TOPIC
+) -> Rollouts:
+    """Read the complete episodes of a rollout file, also one whose writer died before finishing it.
+
+    The file is read front to back with mcap's stream reader (chunk CRCs checked); at the first truncated or
+    corrupt record reading stops and everything before it is used (``Rollouts.stop_reason`` says why). An
+    episode counts iff its summary message was read; episodes with steps but no summary are skipped with a
+    warning (``Rollouts.skipped``). Files from any MCAP writer work if they use the topics and JSON schemas of
+    this module, in any message order; channels on other topics are ignored. Summary fields the file lacks
+    are recomputed from the steps with :mod:`spoil_torchrl.eval.metrics` (``feasible_return`` needs a
+    ``cost_threshold`` in the summary or the metadata, else it is NaN). Episodes are sorted by
+    ``(evaluation_step, episode)``. Each episode's messages are packed into tensors as soon as it is complete.
+
+    Raises:
+        FileNotFoundError: no such file.
+        RolloutFileError: not an MCAP file; or, in the readable part, messages that break the schemas, or (in
+            a finished file) an episode whose steps do not match its summary's length.
+
+    Examples:
+        See :class:`~spoil_torchrl.eval.RolloutWriter`.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such rollout file")
+    with open(path, "rb") as f:
+        magic = f.read(len(MCAP_MAGIC))
+    if magic != MCAP_MAGIC:
+        raise RolloutFileError(
+            f"{path}: not an MCAP file (it does not start with the MCAP magic bytes"
+            + (", it is empty" if not magic else "")
+            + ")"
+        )
+
+    channels: dict[int, str] = {}  # channel id -> "step" | "episode"
+    pending: dict[tuple[int, int], dict[int, dict]] = {}  # step messages of episodes not complete yet
+    summaries: dict[tuple[int, int], dict] = {}
+    packed: dict[tuple[int, int], _Episode] = {}
+    inconsistent: dict[tuple[int, int], str] = {}
+    metadata: dict[str, str] = {}
+    finished, stop_reason = False, None
+    for record in _records(path):
+        if isinstance(record, tuple):
+            stop_reason = record[1]
+            break
+        if isinstance(record, Channel) and record.topic in (step_topic, episode_topic):
+            if record.message_encoding != MessageEncoding.JSON:
+                raise RolloutFileError(
+                    f"{path}: channel {record.topic} has message encoding {record.message_encoding!r}, "
+                    "expected 'json'"
+                )
+            channels[record.id] = "step" if record.topic == step_topic else "episode"
+        elif isinstance(record, Message) and record.channel_id in channels:
+            kind = channels[record.channel_id]
+            where = f"{path}: {step_topic if kind == 'step' else episode_topic} message at log time {record.log_time}"
+            try:
+                message = json.loads(record.data)
+            except (json.JSONDecodeError, UnicodeDecodeError) as err:
+                raise RolloutFileError(f"{where}: not valid JSON ({err})") from err
+            _validate(message, STEP_SCHEMA if kind == "step" else EPISODE_SCHEMA, where)
+            message[_LOG_TIME] = record.log_time
+            key = (int(message.get("evaluation_step", 0)), int(message["episode"]))
+            if kind == "step":
+                t = message["step"]
+                if key in packed:
+                    inconsistent[key] = f"step {t} arrived after all {len(packed[key])} steps of its summary"
+                elif t in pending.get(key, {}):
+                    inconsistent[key] = f"step {t} appears twice"
+                pending.setdefault(key, {})[t] = message
+            elif key in summaries:
+                raise RolloutFileError(f"{where}: episode {key[1]} has two summaries")
+            else:
+                summaries[key] = message
+            steps = pending.get(key, {})
+            n = summaries[key]["length"] if key in summaries else -1
+            if len(steps) == n and max(steps, default=-1) == n - 1 and key not in inconsistent:
+                packed[key] = _pack(path, [steps[t] for t in sorted(steps)], summaries[key]["length"])
+                pending.pop(key, None)
+        elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+            metadata.update(record.metadata)
+        elif isinstance(record, Footer):
+            finished = True
+
+    no_summary = sorted(set(pending) - set(summaries))  # episodes in progress when the writer stopped
+    skipped = len(no_summary)
+    for key in sorted(summaries):
+        n, have = summaries[key]["length"], sorted(pending.get(key, {}))
+        if key in inconsistent or (key not in packed and have != list(range(n))):
+            problem = f"{path}: episode {key[1]} (evaluation step {key[0]}): " + inconsistent.get(
+                key, f"a summary of length {n} but steps {have[:10]}{'...' if len(have) > 10 else ''}"
+            )
+            if finished:
+                raise RolloutFileError(problem)
+            warnings.warn(problem + " (skipped)", stacklevel=2)
+            packed.pop(key, None)
+            skipped += 1
+    if no_summary:
+        warnings.warn(
+            f"{path}: skipped {len(no_summary)} incomplete episode(s) (steps without a summary)", stacklevel=2
+        )
+
+    try:
+        default_threshold = float(metadata.get("cost_threshold", "nan"))
+    except ValueError:
+        default_threshold = math.nan
+    keys = sorted(packed)
+    episodes = [packed[k] for k in keys]
+    return Rollouts(
+        steps=_steps_tensordict(path, keys, episodes),
+        episodes=_episodes_tensordict(keys, [summaries[k] for k in keys], episodes, default_threshold),
+        metadata=metadata,
+        finished=finished,
+        skipped=skipped,
+        stop_reason=None if finished else stop_reason or "the file ends before the MCAP footer",
+    )
+
+
+@dataclass
+class _Episode:
+    """One episode's steps as tensors: observation / action ``[n, d]`` float32, the rest ``[n]``."""
+
+    observation: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor  # float64
+    cost: torch.Tensor  # float64
+    cumulative_cost: torch.Tensor  # float64
+    terminated: torch.Tensor  # bool
+    truncated: torch.Tensor  # bool
+    log_time: torch.Tensor  # int64
+
+    def __len__(self) -> int:
+        return self.reward.shape[0]
+
+
+def _pack(path: Path, messages: list[dict], length: int) -> _Episode:
+    """The step messages ``0..length-1`` of one episode (already validated) as an :class:`_Episode`."""
+
+    def array(name: str) -> torch.Tensor:
+        rows = [[_float(v) for v in m[name]] for m in messages]
+        if len({len(r) for r in rows}) > 1:
+            raise RolloutFileError(f"{path}: '{name}' arrays of one episode have different lengths")
+        return torch.tensor(rows, dtype=torch.float32).reshape(length, -1) if length else torch.zeros(0, 0)
+
+    def scalars(name: str, dtype=torch.float64) -> torch.Tensor:
+        return torch.tensor([_float(m[name]) for m in messages], dtype=dtype).reshape(length)
+
+    cost = scalars("cost")
+    running = cost.cumsum(0)
+    if all("cumulative_cost" in m for m in messages):
+        cumulative = scalars("cumulative_cost")
+    else:
+        cumulative = running
+    return _Episode(
+        observation=array("observation"),
+        action=array("action"),
+        reward=scalars("reward"),
+        cost=cost,
+        cumulative_cost=cumulative,
+        terminated=torch.tensor([m["terminated"] for m in messages], dtype=torch.bool).reshape(length),
+        truncated=torch.tensor([m["truncated"] for m in messages], dtype=torch.bool).reshape(length),
+        log_time=torch.tensor([m[_LOG_TIME] for m in messages], dtype=torch.int64).reshape(length),
+    )
+
+
+def _steps_tensordict(path: Path, keys: list[tuple[int, int]], episodes: list[_Episode]) -> TensorDict:
+    n_ep, horizon = len(episodes), max((len(e) for e in episodes), default=0)
+    dims = {}
+    for name in ("observation", "action"):
+        sizes = {getattr(e, name).shape[-1] for e in episodes if len(e)}
+        if len(sizes) > 1:
+            raise RolloutFileError(f"{path}: '{name}' arrays have different lengths {sorted(sizes)}")
+        dims[name] = sizes.pop() if sizes else 0
+    obs = torch.zeros(n_ep, horizon, dims["observation"], dtype=torch.float32)
+    act = torch.zeros(n_ep, horizon, dims["action"], dtype=torch.float32)
+    scalars = {
+        k: torch.zeros(n_ep, horizon, 1, dtype=torch.float32) for k in ("reward", "cost", "cumulative_cost")
+    }
+    flags = {k: torch.zeros(n_ep, horizon, 1, dtype=torch.bool) for k in ("terminated", "truncated")}
+    mask = torch.zeros(n_ep, horizon, dtype=torch.bool)
+    log_time = torch.zeros(n_ep, horizon, dtype=torch.int64)
+    for e, episode in enumerate(episodes):
+        n = len(episode)
+        if n == 0:
+            continue
+        obs[e, :n], act[e, :n] = episode.observation, episode.action
+        for name, out in (*scalars.items(), *flags.items()):
+            out[e, :n, 0] = getattr(episode, name)
+        mask[e, :n] = True
+        log_time[e, :n] = episode.log_time
+
+    def per_row(values: list[int]) -> torch.Tensor:
+        return torch.tensor(values, dtype=torch.int64).reshape(n_ep, 1).expand(n_ep, horizon).clone()
+
+    return TensorDict(
+        {
+            "observation": obs,
+            "action": act,
+            "next": {**scalars, **flags, "done": flags["terminated"] | flags["truncated"]},
+            "step": torch.arange(horizon).expand(n_ep, horizon).clone(),
+            "episode": per_row([k[1] for k in keys]),
+            "evaluation_step": per_row([k[0] for k in keys]),
+            "mask": mask,
+            "log_time": log_time,
+        },
+        batch_size=[n_ep, horizon],
+    )
+
+
+def _summary_value(name: str, summary: Mapping[str, Any], episode: _Episode, threshold: float) -> float:
+    """A summary field as stored, or recomputed from the steps when the file lacks it (NaN if undefined)."""
+    if name in summary:
+        return _float(summary[name])
+    if name == "return":
+        return episode_return(episode.reward)
+    if name == "cost":
+        return episode_cost(episode.cost)
+    if bool(torch.isnan(episode.cost).any()) or (name == "feasible_return" and math.isnan(threshold)):
+        return math.nan
+    if name == "feasible_return":
+        return feasible_return(episode.reward, episode.cost, threshold)
+    return strict_feasible_return(episode.reward, episode.cost)
+
+
+def _episodes_tensordict(
+    keys: list[tuple[int, int]], summaries: list[dict], episodes: list[_Episode], default_threshold: float
+) -> TensorDict:
+    n = len(keys)
+    floats, flags = [], []
+    for summary, episode in zip(summaries, episodes, strict=True):
+        threshold = _float(summary["cost_threshold"]) if "cost_threshold" in summary else default_threshold
+        floats.append([_summary_value(name, summary, episode, threshold) for name in SUMMARY_FLOATS[:-1]])
+        floats[-1].append(threshold)
+        flags.append(
+            [
+                bool(summary[name]) if name in summary else bool(len(episode) and getattr(episode, name)[-1])
+                for name in ("terminated", "truncated")
+            ]
+        )
+    floats = torch.tensor(floats, dtype=torch.float64).reshape(n, len(SUMMARY_FLOATS))
+    flags = torch.tensor(flags, dtype=torch.bool).reshape(n, 2)
+    out = {name: floats[:, i] for i, name in enumerate(SUMMARY_FLOATS)}
+    out["terminated"], out["truncated"] = flags[:, 0], flags[:, 1]
+    out["episode"] = torch.tensor([k[1] for k in keys], dtype=torch.int64).reshape(n)
+    out["evaluation_step"] = torch.tensor([k[0] for k in keys], dtype=torch.int64).reshape(n)
+    out["length"] = torch.tensor([len(e) for e in episodes], dtype=torch.int64).reshape(n)
+    out["log_time"] = torch.tensor([s[_LOG_TIME] for s in summaries], dtype=torch.int64).reshape(n)
+    return TensorDict(out, batch_size=[n])
