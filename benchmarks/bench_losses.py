@@ -3,15 +3,21 @@
     make bench                       # batch 512, [256, 256], obs 28 / act 2 (PointCircle1's sizes)
     python benchmarks/bench_losses.py --steps 500 --batch-size 512 --threads 2
 
-Prints updates/s for the library's LossModules and for a hand-written reference of the same step (same
-networks, same loss, same gradient penalty), and their ratio: the cost of the TorchRL / tensordict plumbing.
-Both are checked to compute the same losses before timing. Timings on shared 2-core machines vary by 30-50 %
-between runs; the ratio, measured in one run with interleaved repeats, is the stable number.
+Prints updates/s, each as a ratio to the plain reference, for: the library's LossModules stepped eagerly
+(``MultiLossStepper``'s step), the same step compiled (``CompiledStepper``, what ``train.compile=true`` runs),
+a hand-written plain-PyTorch reference of the same step (same networks, loss and gradient penalty), and the
+step's FLOP limit on this machine (the step's FLOPs counted by ``torch.utils.flop_counter`` against a measured
+matmul rate of the step's own layer shapes). The library and the reference are checked to compute the same
+losses, and the compiled step the eager step's numbers, before timing. Timings on shared 2-core machines vary
+by 30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians), are the stable
+numbers.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import itertools
 import statistics
 import time
 
@@ -21,6 +27,7 @@ from torch import nn
 
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
+from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
 
 
 def make_batch(n: int, n_init: int, obs_dim: int, act_dim: int) -> TensorDict:
@@ -63,6 +70,52 @@ class LibraryStep:
         sum(self.losses(batch)).backward()
         for optim in self.optims:
             optim.step()
+
+
+class StepperStep:
+    """The library step through a ``MultiLossStepper`` (eager) or a ``CompiledStepper``, on its own copy of the
+    networks (the same initial weights as ``library``)."""
+
+    def __init__(self, library: LibraryStep, compiled: bool) -> None:
+        twin = LibraryStep.__new__(LibraryStep)
+        twin.dice, twin.bc = copy.deepcopy(library.dice), copy.deepcopy(library.bc)
+        lr = library.optims[0].param_groups[0]["lr"]
+        optims = [
+            torch.optim.Adam(twin.dice.nu_network_params.values(True, True), lr=lr),
+            torch.optim.Adam([twin.dice.lagrange], lr=lr),
+            torch.optim.Adam(twin.bc.parameters(), lr=lr),
+        ]
+        stepper = MultiLossStepper({"dice": twin.dice, "actor": twin.bc}, optims)
+        self.stepper = CompiledStepper.from_stepper(stepper) if compiled else stepper
+
+    def __call__(self, batch: TensorDict) -> None:
+        self.stepper.step(None, batch)
+
+
+def step_flops(library: LibraryStep, batch: TensorDict) -> int:
+    """FLOPs of one library step (forward, backward, gradient penalty), counted by PyTorch's flop counter."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter:
+        sum(library.losses(batch.clone())).backward()
+    for optim in library.optims:
+        optim.zero_grad(set_to_none=True)
+    return counter.get_total_flops()
+
+
+def matmul_rate(batch_size: int, cells: list[int], obs_dim: int, seconds: float = 1.0) -> float:
+    """FLOP/s of this machine on the step's own matmul shapes (its MLP layers at 3x the batch, as nu runs)."""
+    dims = [obs_dim, *cells]
+    mats = [(torch.randn(3 * batch_size, i), torch.randn(i, o)) for i, o in itertools.pairwise(dims)]
+    flops_per_round = sum(2 * a.shape[0] * a.shape[1] * b.shape[1] for a, b in mats)
+    for a, b in mats:  # warm-up
+        a @ b
+    rounds, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        for a, b in mats:
+            a @ b
+        rounds += 1
+    return rounds * flops_per_round / (time.perf_counter() - start)
 
 
 class ReferenceStep:
@@ -151,20 +204,48 @@ def main() -> None:
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
     assert all(torch.isfinite(x) for x in (*ours, *theirs))
 
-    for step in (library, reference):  # warm-up
+    eager, compiled = StepperStep(library, compiled=False), StepperStep(library, compiled=True)
+    torch.manual_seed(2)
+    eager(batches[0].clone())
+    torch.manual_seed(2)
+    compile_start = time.perf_counter()
+    compiled(batches[0].clone())  # compiles here
+    compile_seconds = time.perf_counter() - compile_start
+    for name, param in eager.stepper.losses["dice"].named_parameters():
+        other = dict(compiled.stepper.losses["dice"].named_parameters())[name]
+        torch.testing.assert_close(param, other, rtol=1e-4, atol=1e-5)
+
+    steps = {"library eager": eager, "library compiled": compiled, "plain reference": reference}
+    for step in steps.values():  # warm-up
         rate(step, batches, 20)
-    lib_rates, ref_rates = [], []
-    for _ in range(args.repeats):  # interleaved, so both see the same machine load
-        lib_rates.append(rate(library, batches, args.steps))
-        ref_rates.append(rate(reference, batches, args.steps))
-    lib, ref = statistics.median(lib_rates), statistics.median(ref_rates)
+    rates: dict[str, list[float]] = {name: [] for name in steps}
+    peaks: list[float] = []
+    for _ in range(args.repeats):  # interleaved, so all see the same machine load
+        for name, step in steps.items():
+            rates[name].append(rate(step, batches, args.steps))
+        peaks.append(matmul_rate(args.batch_size, args.cells, args.obs_dim))
+    flops = step_flops(library, batches[0])
+    medians = {name: statistics.median(r) for name, r in rates.items()}
+    medians["FLOP limit"] = statistics.median(peaks) / flops
+    ref = medians["plain reference"]
     print(
         f"SpoilDICE + weighted-BC step, batch {args.batch_size}, cells {args.cells}, obs {args.obs_dim}, "
         f"act {args.act_dim}, {args.threads} threads, median of {args.repeats} x {args.steps} steps"
     )
-    print(f"  spoil_torchrl LossModules : {lib:8.1f} updates/s   (runs: {[round(r, 1) for r in lib_rates]})")
-    print(f"  plain PyTorch reference   : {ref:8.1f} updates/s   (runs: {[round(r, 1) for r in ref_rates]})")
-    print(f"  ratio library / reference : {lib / ref:8.3f}")
+    for name, value in medians.items():
+        runs = rates.get(name)
+        detail = (
+            f"(runs: {[round(r, 1) for r in runs]})"
+            if runs
+            else (
+                f"({flops / 1e9:.2f} GFLOP per step at {statistics.median(peaks) / 1e9:.0f} GFLOP/s, measured on "
+                "the step's layer shapes)"
+            )
+        )
+        print(f"  {name:<17}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")
+    print(f"  (compiling the step took {compile_seconds:.1f} s, once per process)")
+    if compiled.stepper.eager_reason is not None:
+        print(f"  note: the step could not be compiled ({compiled.stepper.eager_reason}); it ran eagerly")
 
 
 if __name__ == "__main__":

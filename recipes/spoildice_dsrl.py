@@ -62,6 +62,7 @@ from spoil_torchrl.experts import save_policy
 from spoil_torchrl.files import write_atomic
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import offline_trainer, stop_on_signals
+from spoil_torchrl.trainers.compiled import compile_stepper
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
 from spoil_torchrl.trainers.checkpoint import (
     CheckpointError,
@@ -183,6 +184,7 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
     )
     episodes = data.episodes if norm is None else standardize_observations(data.episodes, norm)
     buffers = DualDemoBuffers(episodes, data.roles, batch_size=int(train.batch_size), seed=int(cfg.seed))
+    data_seconds = time.perf_counter() - start
     evaluator = Evaluator(  # built (and its settings checked) before any training
         task.env_id,
         cost_threshold=data.cost_threshold,
@@ -211,6 +213,7 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
             "config_hash": config_hash,
             "data": data.summary(),
             "status": "pre-training",
+            "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)
             "evaluations": [],
         }
         if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
@@ -255,6 +258,7 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         progress=cfg.progress,
     )
     training.observation_norm = norm
+    training.stepper = compile_stepper(training.stepper, bool(train.compile))  # the same step, compiled
     fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
     if state is not None and fingerprint != state["pretraining"]:
         raise CheckpointError(
@@ -283,6 +287,7 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         step = trainer.collected_frames
         if step % interval and step < total:
             return None
+        evaluation_start = time.perf_counter()
         with training.policy() as policy:
             result = evaluator(policy, step)
             if train.checkpoint:
@@ -301,6 +306,7 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
                 for key, value in result["dice"].items():
                     logger.log_scalar(key, value, step=step)
         result["seconds"] = time.perf_counter() - train_start
+        result["eval_seconds"] = time.perf_counter() - evaluation_start  # rollouts, policy file, diagnostics
         trainer.progress.note(
             f"step {step}: feasible return {result['normalized_feasible_return']:.2f}, "
             f"cost {result['normalized_cost']:.2f}"
