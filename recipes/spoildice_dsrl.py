@@ -62,7 +62,6 @@ from spoil_torchrl.experts import save_policy
 from spoil_torchrl.files import write_atomic
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import offline_trainer, stop_on_signals
-from spoil_torchrl.trainers.compiled import compile_stepper
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
 from spoil_torchrl.trainers.checkpoint import (
     CheckpointError,
@@ -258,7 +257,6 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         progress=cfg.progress,
     )
     training.observation_norm = norm
-    training.stepper = compile_stepper(training.stepper, bool(train.compile))  # the same step, compiled
     fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
     if state is not None and fingerprint != state["pretraining"]:
         raise CheckpointError(

@@ -95,6 +95,7 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     assert "\x1b" not in proc.stdout + proc.stderr and "AdroitHand" not in proc.stderr
     assert results["status"] == "finished" and results["algo"] == "spoildice"
     assert [e["step"] for e in results["evaluations"]] == [100, 200]
+    assert results["data_seconds"] > 0 and all(e["eval_seconds"] > 0 for e in results["evaluations"])
     assert set(results["aggregate"]) >= {"normalized_feasible_return", "normalized_cost", "feasible_return"}
     assert 0.0 < results["diagnostics"]["support_share_unlabeled"] <= 1.0
     assert results["data"]["safe"]["episodes"] == 2
@@ -368,19 +369,3 @@ def test_minari_export_and_training_on_it(tmp_path, tiny_pc1_dataset):
     results = json.loads((tmp_path / "train" / "results.json").read_text())
     assert results["status"] == "finished" and results["data"]["safe"]["episodes"] == 2
     assert results["data"]["unlabeled"]["episodes"] == 12
-
-
-def test_dsrl_recipe_compiled_step_gives_the_eager_numbers(tmp_path, tiny_pc1_dataset):
-    runs = {}
-    for compiled in (False, True):
-        _, runs[compiled] = _dsrl_recipe(
-            tmp_path / str(compiled),
-            tiny_pc1_dataset,
-            f"train.compile={str(compiled).lower()}",
-            "logger=none",
-        )
-    eager, compiled = runs[False], runs[True]
-    assert compiled["status"] == "finished" and compiled["diagnostics"] == eager["diagnostics"]
-    for a, b in zip(eager["evaluations"], compiled["evaluations"], strict=True):
-        assert a["episodes"]["return"] == pytest.approx(b["episodes"]["return"], rel=1e-4)
-    assert compiled["data_seconds"] > 0 and all(e["eval_seconds"] > 0 for e in compiled["evaluations"])

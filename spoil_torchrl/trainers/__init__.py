@@ -1,6 +1,5 @@
 """Training loops: TorchRL Trainer glue for offline learning."""
 
-from spoil_torchrl.trainers.compiled import CompiledStepper, compile_stepper
 from spoil_torchrl.trainers.offline import (
     MultiLossStepper,
     OfflineBatchSource,
@@ -11,8 +10,6 @@ from spoil_torchrl.trainers.offline import (
 )
 
 __all__ = [
-    "CompiledStepper",
-    "compile_stepper",
     "MultiLossStepper",
     "OfflineBatchSource",
     "SampleBuffers",

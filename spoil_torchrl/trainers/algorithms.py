@@ -44,7 +44,6 @@ from spoil_torchrl.objectives import (
     safedice_auto_alpha,
     safedice_reward,
 )
-from spoil_torchrl.trainers.compiled import compile_stepper
 from spoil_torchrl.trainers.offline import MultiLossStepper, StepEvery, offline_trainer
 
 
@@ -142,7 +141,7 @@ def train_discriminators(
     ``against`` (default ``"unlabeled"``: Eq. 16-17; DemoDICE-S uses ``"safe"``), trained for ``cfg["steps"]``
     steps with Adam (``cfg["lr"]``) through the offline :class:`~torchrl.trainers.Trainer`.
     ``cfg["gradient_penalty"]`` maps each positive role to its penalty coefficient (Table J: 10 for C_P, none
-    for C_S); ``cfg["compile"]`` compiles the step (:class:`~spoil_torchrl.trainers.compiled.CompiledStepper`)."""
+    for C_S)."""
     penalties = cfg["gradient_penalty"]
     missing = [role for role in positives if role not in penalties]
     if missing:
@@ -158,7 +157,7 @@ def train_discriminators(
     }
     optimizers = [_adam(loss.parameters(), cfg["lr"]) for loss in losses.values()]
     trainer = offline_trainer(
-        compile_stepper(MultiLossStepper(losses, optimizers), cfg.get("compile", False)),
+        MultiLossStepper(losses, optimizers),
         buffers.sample,
         total_steps=int(cfg["steps"]),
         steps_per_batch=min(100, int(cfg["steps"])),

@@ -49,7 +49,6 @@ def _layers(value: Any) -> bool:
 #: key name -> (check, what is expected); applies wherever the key appears in ``train`` or ``algo``.
 RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "lr": (lambda v: _number(v) and v > 0, "a finite number > 0"),
-    "compile": (lambda v: isinstance(v, bool), "true or false"),
     "gamma": (_open_unit, "a number in (0, 1)"),
     "kappa": (_open_unit, "a quantile in (0, 1)"),
     "eta": (_open_unit, "a class prior in (0, 1)"),
