@@ -247,6 +247,8 @@ class PUDiscriminatorLoss(LossModule):
             out = self.discriminator_network(inputs)
         return out.get(self.discriminator_network.out_keys[0]).reshape(-1)
 
+    # Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
+    @torch.compiler.disable
     def _penalty(self, positive: TensorDictBase, unlabeled: TensorDictBase) -> torch.Tensor:
         if self.gradient_penalty == 0:
             return torch.zeros((), device=unlabeled.device)

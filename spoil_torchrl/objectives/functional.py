@@ -86,23 +86,17 @@ def interpolate(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def input_gradient_norms(fn: Callable[..., torch.Tensor], inputs: Sequence[torch.Tensor]) -> torch.Tensor:
     """Per-sample norms of the gradient of ``fn(*inputs)`` with respect to the (concatenated) inputs.
 
-    Computed row by row with ``torch.func`` (``vmap`` of ``grad``), so ``fn`` must treat rows independently (the
-    MLPs here do). The result stays differentiable, so a penalty on these norms trains the network's parameters,
-    through ``backward()`` or an outer ``torch.func.grad``; unlike ``torch.autograd.grad(create_graph=True)``
-    (a double backward), this form can also be traced by ``torch.compile``.
+    The graph is kept (``create_graph=True``) so that a penalty on these norms trains the network parameters.
 
     Examples:
         >>> w = torch.tensor([3.0, 4.0], requires_grad=True)
         >>> input_gradient_norms(lambda x: x @ w, [torch.randn(5, 2)])
         tensor([5., 5., 5., 5., 5.], grad_fn=<LinalgVectorNormBackward0>)
     """
-
-    def one(*rows: torch.Tensor) -> torch.Tensor:
-        return fn(*[row.unsqueeze(0) for row in rows]).sum()
-
-    grads = torch.func.vmap(torch.func.grad(one, argnums=tuple(range(len(inputs)))))(
-        *[x.detach() for x in inputs]
-    )
+    leaves = [x.detach().requires_grad_(True) for x in inputs]
+    with torch.enable_grad():
+        out = fn(*leaves)
+        grads = torch.autograd.grad(out.sum(), leaves, create_graph=True)
     return torch.cat([g.reshape(g.shape[0], -1) for g in grads], dim=-1).norm(dim=-1)
 
 
@@ -161,6 +155,8 @@ def dice_advantage(reward: torch.Tensor, nu: torch.Tensor, backup: torch.Tensor)
     return reward + backup - nu
 
 
+# Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
+@torch.compiler.disable
 def nu_gradient_penalty(
     nu_fn: Callable[[dict], torch.Tensor],
     init: Mapping[object, torch.Tensor],
