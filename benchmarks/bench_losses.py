@@ -69,6 +69,35 @@ class LibraryStep:
             optim.step()
 
 
+def sampling_seconds(batch_size: int, obs_dim: int, act_dim: int, repeats: int = 200) -> float:
+    """Seconds per ``DualDemoBuffers.sample()`` (safe, performant, unlabeled, init) on 600 episodes of 500 steps
+    (the embedded dataset's size), D_S and D_P 10 episodes each: the data side of one training step."""
+    import numpy as np
+
+    from spoil_torchrl.data import DualDemoBuffers, episodes_from_arrays
+
+    n, rng = 300_000, np.random.default_rng(0)
+    episodes = episodes_from_arrays(
+        {
+            "observations": rng.normal(size=(n, obs_dim)).astype(np.float32),
+            "next_observations": rng.normal(size=(n, obs_dim)).astype(np.float32),
+            "actions": rng.uniform(-1, 1, (n, act_dim)).astype(np.float32),
+            "rewards": np.ones(n, np.float32),
+            "costs": np.zeros(n, np.float32),
+            "terminals": np.zeros(n, np.float32),
+            "timeouts": (np.arange(1, n + 1) % 500 == 0).astype(np.float32),
+        }
+    )
+    roles = {"safe": torch.arange(10), "performant": torch.arange(10, 20), "unlabeled": torch.arange(600)}
+    buffers = DualDemoBuffers(episodes, roles, batch_size=batch_size)
+    for _ in range(20):
+        buffers.sample()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        buffers.sample()
+    return (time.perf_counter() - start) / repeats
+
+
 def step_flops(reference: ReferenceStep, batch: TensorDict) -> int:
     """FLOPs of one step (forward, backward, gradient penalty) on the plain reference (the same math), counted
     per operator with PyTorch's FLOP formulas (``torch.utils.flop_counter.flop_registry``; its
@@ -223,6 +252,11 @@ def main() -> None:
             )
         )
         print(f"  {name:<17}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")
+    sample = sampling_seconds(args.batch_size, args.obs_dim, args.act_dim)
+    print(
+        f"  sampling the four roles: {1000 * sample:.2f} ms per batch = "
+        f"{100 * sample * medians['spoil_torchrl']:.1f} % of a library step"
+    )
 
 
 if __name__ == "__main__":

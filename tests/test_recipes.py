@@ -338,34 +338,36 @@ def test_report_learning_curves_average_seeds_at_shared_steps():
     assert curves["normalized_cost"][0][0] == pytest.approx(0.8)
 
 
+def _recipe(name: str, *overrides: str, env=None) -> subprocess.CompletedProcess:
+    """Run ``recipes/<name>.py`` with ``overrides`` (quietly); fails the test on a non-zero exit."""
+    cmd = [sys.executable, str(ROOT / "recipes" / f"{name}.py"), "progress=false", *overrides]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
 def test_minari_export_and_training_on_it(tmp_path, tiny_pc1_dataset):
     pytest.importorskip("minari")
     env = {**os.environ, "MINARI_DATASETS_PATH": str(tmp_path / "minari")}
-    export = [
-        sys.executable,
-        str(ROOT / "recipes" / "export_minari.py"),
+    proc = _recipe(
+        "export_minari",
         f"dataset.source=file:{tiny_pc1_dataset}",
         "dataset.n_safe=2",
         "dataset.n_performant=2",
         "dataset_id=test/tiny-pc1-v0",
-        "progress=false",
         f"hydra.run.dir={tmp_path / 'export'}",
-    ]
-    proc = subprocess.run(export, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+        env=env,
+    )
     assert "test/tiny-pc1-v0: 12 episodes" in proc.stdout and "AdroitHand" not in proc.stderr
-    train = [
-        sys.executable,
-        str(ROOT / "recipes" / "spoildice_dsrl.py"),
+    _recipe(
+        "spoildice_dsrl",
         "preset=smoke",
         "dataset.source=minari:test/tiny-pc1-v0",
         "dataset.scheme=stored",
         "logger=none",
-        "progress=false",
         f"hydra.run.dir={tmp_path / 'train'}",
-    ]
-    proc = subprocess.run(train, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+        env=env,
+    )
     results = json.loads((tmp_path / "train" / "results.json").read_text())
     assert results["status"] == "finished" and results["data"]["safe"]["episodes"] == 2
     assert results["data"]["unlabeled"]["episodes"] == 12
