@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from spoil_torchrl.data.minari_io import minari_dataset_path, write_minari
@@ -51,10 +52,12 @@ def main(cfg: DictConfig) -> None:
         overwrite=cfg.overwrite,
     )
     sizes = ", ".join(f"{role} {ids.numel()}" for role, ids in data.roles.items())
+    config = HydraConfig.get().runtime.choices.get("dataset")  # its task and constants, for the command below
     log.info(
         f"{dataset_id}: {dataset.total_episodes} episodes, {dataset.total_steps} steps in "
         f"{minari_dataset_path(dataset_id)} (roles: {sizes} episodes)\n"
-        f"train on it: python recipes/spoildice_dsrl.py dataset.source=minari:{dataset_id} dataset.scheme=stored"
+        f"train on it: python recipes/spoildice_dsrl.py dataset={config} dataset.source=minari:{dataset_id} "
+        "dataset.scheme=stored"
     )
 
 
