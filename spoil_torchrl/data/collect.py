@@ -172,10 +172,21 @@ def rollout(
     }
 
 
+def episode_bounds(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``(starts, ends)`` row indices of the episodes of DSRL arrays (episodes back to back; an episode ends
+    at a terminal or timeout flag, ``ends`` exclusive).
+
+    Examples:
+        >>> episode_bounds({"terminals": np.array([0, 1, 0, 0]), "timeouts": np.array([0, 0, 0, 1])})
+        (array([0, 2]), array([2, 4]))
+    """
+    ends = np.flatnonzero(np.asarray(arrays["terminals"]) | np.asarray(arrays["timeouts"])) + 1
+    return np.concatenate([[0], ends[:-1]]).astype(ends.dtype), ends
+
+
 def episode_totals(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Per-episode undiscounted return and cost of DSRL arrays (float64)."""
-    ends = np.flatnonzero(arrays["terminals"] | arrays["timeouts"]) + 1
-    starts = np.concatenate([[0], ends[:-1]])
+    starts, _ = episode_bounds(arrays)
     rewards = np.add.reduceat(arrays["rewards"].astype(np.float64), starts)
     costs = np.add.reduceat(arrays["costs"].astype(np.float64), starts)
     return rewards, costs

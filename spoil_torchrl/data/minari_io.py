@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from spoil_torchrl.data.episodes import DatasetError, episodes_from_arrays
+from spoil_torchrl.data.episodes import DSRL_KEYS, DatasetError, episodes_from_arrays
 
 INSTALL_HINT = "the minari package is not installed: pip install 'spoil_torchrl[minari]'"
 #: Key of this library's entry in a Minari dataset's metadata.
@@ -279,10 +279,8 @@ def _per_step(values, length: int, name: str, source: str) -> np.ndarray:
     )
 
 
-def read_minari_episodes(
-    dataset_id: str, *, download: bool = True
-) -> tuple[dict[str, np.ndarray], list[dict]]:
-    """The DSRL-layout arrays of a Minari dataset (episodes back to back) and its episode metadata.
+def read_minari_episodes(dataset_id: str, *, download: bool = True) -> dict[str, np.ndarray]:
+    """The DSRL-layout arrays of a Minari dataset (episodes back to back).
 
     An episode whose last step has neither flag (a collection cut short) gets ``timeouts`` at its last step, so
     that episodes stay apart.
@@ -296,8 +294,7 @@ def read_minari_episodes(
             raise DatasetError(
                 f"{source}: the {name} space is {type(space).__name__}; only Box spaces are supported"
             )
-    columns: dict[str, list[np.ndarray]] = {k: [] for k in ("observations", "next_observations", "actions")}
-    columns.update({k: [] for k in ("rewards", "costs", "terminals", "timeouts")})
+    columns: dict[str, list[np.ndarray]] = {k: [] for k in DSRL_KEYS}
     for episode in dataset.iterate_episodes():
         n = len(episode)
         infos = episode.infos or {}
@@ -324,9 +321,7 @@ def read_minari_episodes(
         columns["timeouts"].append(timeouts)
     if not columns["rewards"]:
         raise DatasetError(f"{source}: the dataset has no episodes")
-    arrays = {k: np.concatenate(v) for k, v in columns.items()}
-    episode_metadata = list(dataset.storage.get_episode_metadata(dataset.episode_indices))
-    return arrays, episode_metadata
+    return {k: np.concatenate(v) for k, v in columns.items()}
 
 
 def read_minari(
@@ -342,7 +337,7 @@ def read_minari(
     Every problem is a :class:`~spoil_torchrl.data.DatasetError` naming the dataset: not found / not
     downloadable, non-Box spaces, no per-step cost, inconsistent lengths, NaN, wrong dimensions.
     """
-    arrays, _ = read_minari_episodes(dataset_id, download=download)
+    arrays = read_minari_episodes(dataset_id, download=download)
     return episodes_from_arrays(
         arrays, source=f"minari:{dataset_id}", observation_dim=observation_dim, action_dim=action_dim
     )
@@ -358,7 +353,7 @@ def read_minari_metadata(dataset_id: str) -> dict:
     dataset = _load(dataset_id, download=False)
     raw = dataset.storage.metadata
     metadata = dict(raw.get(METADATA_KEY) or {})
-    per_episode = list(dataset.storage.get_episode_metadata(dataset.episode_indices))
+    per_episode = _episode_metadata(dataset)
     labels = [entry.get("policy_type") for entry in per_episode]
     if "segments" not in metadata and any(label is not None for label in labels):
         metadata["segments"] = _segments([None if v is None else str(v) for v in labels])
@@ -368,6 +363,11 @@ def read_minari_metadata(dataset_id: str) -> dict:
     if "ref_min_score" in raw and "ref_max_score" in raw and "return_range" not in metadata:
         metadata["return_range"] = [float(raw["ref_min_score"]), float(raw["ref_max_score"])]
     return metadata
+
+
+def _episode_metadata(dataset) -> list[dict]:
+    """The metadata of every episode of a :class:`minari.MinariDataset`, in episode order."""
+    return list(dataset.storage.get_episode_metadata(dataset.episode_indices))
 
 
 def _roles(per_episode: list[dict]) -> dict[str, torch.Tensor]:
@@ -387,5 +387,4 @@ def read_minari_roles(dataset_id: str) -> dict[str, torch.Tensor]:
 
     Examples are in :func:`write_minari`.
     """
-    dataset = _load(dataset_id, download=False)
-    return _roles(list(dataset.storage.get_episode_metadata(dataset.episode_indices)))
+    return _roles(_episode_metadata(_load(dataset_id, download=False)))

@@ -152,11 +152,6 @@ def make_render_env(env_id: str, size: int):
     return env
 
 
-def _episode_bounds(arrays) -> list[tuple[int, int]]:
-    ends = np.flatnonzero(np.asarray(arrays["terminals"]) | np.asarray(arrays["timeouts"])) + 1
-    return list(zip([0, *ends[:-1].tolist()], ends.tolist(), strict=True))
-
-
 def replay_episodes(
     env_id: str, arrays, *, seed: int, num_envs: int, frames: bool = False, frame_size: int = 256
 ) -> tuple[list[np.ndarray | None], list[list[np.ndarray] | None]]:
@@ -167,10 +162,10 @@ def replay_episodes(
     reset's observation identifies the episode that followed it. An episode whose replay does not reproduce
     its stored observations gets ``None`` (with a warning).
     """
-    from spoil_torchrl.data.collect import reset_seed
+    from spoil_torchrl.data.collect import episode_bounds, reset_seed
     from spoil_torchrl.envs import make_safety_gymnasium
 
-    bounds = _episode_bounds(arrays)
+    bounds = list(zip(*(b.tolist() for b in episode_bounds(arrays)), strict=True))
     obs, next_obs = np.asarray(arrays["observations"]), np.asarray(arrays["next_observations"])
     actions = np.asarray(arrays["actions"], dtype=np.float64)
     poses: list[np.ndarray | None] = [None] * len(bounds)

@@ -36,10 +36,11 @@ def pad_episodes(arrays: Mapping[str, np.ndarray]) -> TensorDict:
         >>> pad_episodes(arrays)["mask"].tolist()
         [[True, True], [True, False]]
     """
-    ends = np.flatnonzero(np.asarray(arrays["terminals"]) | np.asarray(arrays["timeouts"])) + 1
+    from spoil_torchrl.data.collect import episode_bounds
+
+    starts, ends = episode_bounds(arrays)
     if ends.size == 0 or ends[-1] != len(arrays["rewards"]):
         raise ValueError("the arrays do not end with a finished episode")
-    starts = np.concatenate([[0], ends[:-1]])
     lengths = ends - starts
     n, t = len(lengths), int(lengths.max())
     index = torch.arange(t).expand(n, t)
