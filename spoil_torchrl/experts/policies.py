@@ -163,7 +163,11 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
                 f"{path}: a policy for observation/action sizes {obs_dim}/{act_dim}; {env_id} has "
                 f"{task.observation_dim}/{task.action_dim}"
             )
-    actor = make_actor(obs_dim, act_dim, hidden_cells=hidden, distribution=meta["distribution"])
+    # the random initial weights are replaced below: building them must not advance the caller's generator
+    # (a run that makes its dataset first would otherwise train from other initial weights than one that finds
+    # it cached)
+    with torch.random.fork_rng(devices=[]):
+        actor = make_actor(obs_dim, act_dim, hidden_cells=hidden, distribution=meta["distribution"])
     if meta["observation_norm"]:
         actor = with_observation_norm(actor, ObservationNormalizer.identity(obs_dim))
     try:

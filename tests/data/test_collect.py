@@ -79,9 +79,14 @@ def test_random_policy_and_bad_arguments():
 
 def test_collect_writes_a_loadable_file_with_segments(tmp_path):
     segments = [Segment("safe-high", "zoo:safe-high", 2), Segment("random", "random", 1)]
+    torch.manual_seed(0)
+    before = torch.get_rng_state()
     path = collect(
         ENV, segments, tmp_path / "d.hdf5", seed=1, num_envs=2, reference_episodes=1, progress=False
     )
+    # making a dataset leaves the caller's generator alone: a run that makes its data first trains from the
+    # same initial weights as one that finds them cached
+    assert torch.equal(torch.get_rng_state(), before)
     meta = read_metadata(path)
     assert meta["env_id"] == ENV and meta["cost_threshold"] == 25.0 and meta["steps"] == 1500
     assert meta["safe_high_return"] > 20 > meta["random_return"]
