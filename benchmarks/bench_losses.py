@@ -1,15 +1,18 @@
 """Update rate of one SpoilDICE + weighted-BC step, against the same math written in plain PyTorch.
 
     make bench                       # batch 512, [256, 256], obs 28 / act 2 (PointCircle1's sizes)
-    python benchmarks/bench_losses.py --steps 500 --batch-size 512 --threads 2
+    python benchmarks/bench_losses.py --steps 500 --batch-size 512 --threads 2 --seeds 5
 
-Prints updates/s, each as a ratio to the plain reference, for: the library's LossModules, a hand-written
-plain-PyTorch reference of the same step (same networks, loss and gradient penalty), and the step's FLOP limit
-on this machine (the step's FLOPs counted with PyTorch's per-operator formulas, over a measured matmul rate of
-the step's own layer shapes): the most any implementation of this step could reach here. The library and the
-reference are checked to compute the same losses before timing. Timings on shared 2-core machines vary by
-30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians), are the stable
-numbers.
+Prints updates/s, each as a ratio to the plain reference, for: the library's LossModules stepped eagerly
+(``MultiLossStepper``'s step), the library's compiled step (``CompiledStepper``, ``train.compile=true``), K seeds
+vectorised (the compiled step's pure update vmapped over stacked parameters: per seed and in total), a
+hand-written plain-PyTorch reference of the same step (same networks, loss and gradient penalty), and the step's
+FLOP limit on this machine (the step's FLOPs counted with PyTorch's per-operator formulas, over a measured
+matmul rate of the step's own layer shapes): the most any implementation of this step could reach here; also
+for the compiled step's own arithmetic, which runs nu once fewer on the batch. The
+library and the reference are checked to compute the same losses before timing. Timings on shared 2-core
+machines vary by 30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians), are
+the stable numbers.
 """
 
 from __future__ import annotations
@@ -25,6 +28,9 @@ from torch import nn
 
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
+from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
+from spoil_torchrl.trainers.compiled import update_gradients
+from spoil_torchrl.trainers.compiled_forms import compiled_forms
 
 
 def make_batch(n: int, n_init: int, obs_dim: int, act_dim: int) -> TensorDict:
@@ -46,7 +52,9 @@ class LibraryStep:
     """One update with SpoilDICELoss + WeightedBCLoss and three Adam optimisers."""
 
     def __init__(self, obs_dim: int, act_dim: int, cells: tuple[int, ...], lr: float = 3e-5) -> None:
-        self.dice = SpoilDICELoss(make_value_network(obs_dim, hidden_cells=cells), gamma=0.99)
+        self.dice = SpoilDICELoss(
+            make_value_network(obs_dim, hidden_cells=cells), gamma=0.99, gradient_penalty=10.0
+        )
         self.bc = WeightedBCLoss(
             make_actor(obs_dim, act_dim, hidden_cells=cells), role="unlabeled", weight="dice_weight"
         )
@@ -55,6 +63,7 @@ class LibraryStep:
             torch.optim.Adam([self.dice.lagrange], lr=lr),
             torch.optim.Adam(self.bc.parameters(), lr=lr),
         ]
+        self.stepper = MultiLossStepper({"dice": self.dice, "actor": self.bc}, self.optims)
 
     def losses(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         out = self.dice(batch)
@@ -62,9 +71,53 @@ class LibraryStep:
         return out["loss_nu"], out["loss_lambda"], actor["loss_actor"]
 
     def __call__(self, batch: TensorDict) -> None:
-        for optim in self.optims:
-            optim.zero_grad(set_to_none=True)
-        sum(self.losses(batch)).backward()
+        self.stepper.step(None, batch)
+
+
+class CompiledLibraryStep:
+    """The library's compiled step (``CompiledStepper``) over a fresh :class:`LibraryStep`'s losses."""
+
+    def __init__(self, obs_dim: int, act_dim: int, cells: tuple[int, ...]) -> None:
+        step = LibraryStep(obs_dim, act_dim, cells)
+        self.stepper = CompiledStepper({"dice": step.dice, "actor": step.bc}, step.optims)
+
+    def __call__(self, batch: TensorDict) -> None:
+        self.stepper.step(None, batch)
+
+
+class VectorizedSeeds:
+    """``k`` seeds' steps as one update: the compiled step's pure update (``update_gradients``) vmapped over
+    parameters stacked along a leading seed dimension, compiled, and one Adam per loss over the stacked
+    parameters (Adam is elementwise: the same as one Adam per seed). Each call is one step of every seed, each
+    on its own batch (``k`` consecutive batches of ``batches``)."""
+
+    def __init__(self, k: int, obs_dim: int, act_dim: int, cells: tuple[int, ...], batches, lr=3e-5) -> None:
+        seeds = [LibraryStep(obs_dim, act_dim, cells) for _ in range(k)]
+        forms = [compiled_forms({"dice": s.dice, "actor": s.bc}) for s in seeds]
+        self.forms, self.k, self.batches, self.calls = forms[0], k, batches, 0
+        self.params = {
+            name: {
+                key: torch.stack([f[name].parameters()[key].detach() for f in forms]).requires_grad_(True)
+                for key in form.parameters()
+            }
+            for name, form in self.forms.items()
+        }
+        self.optims = [torch.optim.Adam(ps.values(), lr=lr) for ps in self.params.values()]
+        self.update = torch.compile(torch.vmap(update_gradients(self.forms)), fullgraph=True, dynamic=False)
+
+    def __call__(self, batch: TensorDict) -> None:
+        picked = [self.batches[(self.k * self.calls + i) % len(self.batches)] for i in range(self.k)]
+        self.calls += 1
+        per_seed = [{name: form.inputs(b) for name, form in self.forms.items()} for b in picked]
+        inputs = {
+            name: {key: torch.stack([x[name][key] for x in per_seed]) for key in per_seed[0][name]}
+            for name in self.forms
+        }
+        detached = {name: {k: p.detach() for k, p in ps.items()} for name, ps in self.params.items()}
+        grads, _ = self.update(detached, inputs)
+        for name, ps in self.params.items():
+            for key, p in ps.items():
+                p.grad = grads[name][key]
         for optim in self.optims:
             optim.step()
 
@@ -98,10 +151,10 @@ def sampling_seconds(batch_size: int, obs_dim: int, act_dim: int, repeats: int =
     return (time.perf_counter() - start) / repeats
 
 
-def step_flops(reference: ReferenceStep, batch: TensorDict) -> int:
-    """FLOPs of one step (forward, backward, gradient penalty) on the plain reference (the same math), counted
-    per operator with PyTorch's FLOP formulas (``torch.utils.flop_counter.flop_registry``; its
-    ``FlopCounterMode`` cannot be used: its module tracker breaks on the penalty's ``autograd.grad``)."""
+def count_flops(fn) -> int:
+    """FLOPs of ``fn()``, counted per operator with PyTorch's FLOP formulas
+    (``torch.utils.flop_counter.flop_registry``; its ``FlopCounterMode`` cannot be used: its module tracker
+    breaks on the penalty's ``autograd.grad``)."""
     from torch.utils._python_dispatch import TorchDispatchMode
     from torch.utils.flop_counter import flop_registry
 
@@ -117,10 +170,24 @@ def step_flops(reference: ReferenceStep, batch: TensorDict) -> int:
             return out
 
     with Count():
-        sum(reference.losses(batch.clone())).backward()
+        fn()
+    return Count.total
+
+
+def step_flops(reference: ReferenceStep, batch: TensorDict) -> int:
+    """FLOPs of one step (forward, backward, gradient penalty) of the plain reference (the eager math)."""
+    flops = count_flops(lambda: sum(reference.losses(batch.clone())).backward())
     for optim in reference.optims:
         optim.zero_grad(set_to_none=True)
-    return Count.total
+    return flops
+
+
+def compiled_form_flops(compiled: CompiledLibraryStep, batch: TensorDict) -> int:
+    """FLOPs of the compiled step's update (its pure function run eagerly): nu runs once fewer on the batch."""
+    forms = compiled.stepper._forms
+    params = {name: {k: p.detach() for k, p in form.parameters().items()} for name, form in forms.items()}
+    inputs = {name: form.inputs(batch.clone()) for name, form in forms.items()}
+    return count_flops(lambda: update_gradients(forms)(params, inputs))
 
 
 def matmul_rate(batch_size: int, cells: list[int], obs_dim: int, seconds: float = 1.0) -> float:
@@ -205,6 +272,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seeds", type=int, default=5, help="K of the vectorised seeds (0: skip)")
     args = parser.parse_args()
     torch.manual_seed(0)
     torch.set_num_threads(args.threads)
@@ -224,18 +292,36 @@ def main() -> None:
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
     assert all(torch.isfinite(x) for x in (*ours, *theirs))
 
+    cells = tuple(args.cells)
     steps = {"spoil_torchrl": library, "plain reference": reference}
+    compile_seconds = {}
+    for name, make in (
+        ("compiled", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
+        (
+            f"{args.seeds} seeds vmapped",
+            lambda: VectorizedSeeds(args.seeds, args.obs_dim, args.act_dim, cells, batches),
+        ),
+    ):
+        if name.startswith("0 seeds"):
+            continue
+        start = time.perf_counter()
+        steps[name] = make()
+        steps[name](batches[0])  # compiles
+        compile_seconds[name] = time.perf_counter() - start
     for step in steps.values():  # warm-up
         rate(step, batches, 20)
     rates: dict[str, list[float]] = {name: [] for name in steps}
     peaks: list[float] = []
     for _ in range(args.repeats):  # interleaved, so all see the same machine load
-        for name, step in steps.items():
-            rates[name].append(rate(step, batches, args.steps))
+        for name, step in steps.items():  # (a vmapped call is a step of every seed: as many updates in all)
+            calls = max(1, args.steps // args.seeds) if name.endswith("vmapped") else args.steps
+            rates[name].append(rate(step, batches, calls))
         peaks.append(matmul_rate(args.batch_size, args.cells, args.obs_dim))
     flops = step_flops(reference, batches[0])
+    form_flops = compiled_form_flops(steps["compiled"], batches[0])
     medians = {name: statistics.median(r) for name, r in rates.items()}
     medians["FLOP limit"] = statistics.median(peaks) / flops
+    medians["FLOP limit, compiled"] = statistics.median(peaks) / form_flops
     ref = medians["plain reference"]
     print(
         f"SpoilDICE + weighted-BC step, batch {args.batch_size}, cells {args.cells}, obs {args.obs_dim}, "
@@ -243,15 +329,27 @@ def main() -> None:
     )
     for name, value in medians.items():
         runs = rates.get(name)
+        if name.endswith("vmapped"):  # a call is one step of every seed
+            total = args.seeds * value
+            print(
+                f"  {name:<20}: {value:8.1f} updates/s per seed, {total:.1f} in total   ratio to reference "
+                f"{total / ref:6.2f} in total, {total / medians['spoil_torchrl']:.2f} x the eager library's "
+                f"total for {args.seeds} seeds one after another   (runs: {[round(r, 1) for r in runs]}; "
+                f"compiling {compile_seconds[name]:.0f} s)"
+            )
+            continue
+        step_gflop = (form_flops if name.endswith("compiled") else flops) / 1e9
         detail = (
             f"(runs: {[round(r, 1) for r in runs]})"
             if runs
             else (
-                f"({flops / 1e9:.2f} GFLOP per step at {statistics.median(peaks) / 1e9:.0f} GFLOP/s, measured on "
+                f"({step_gflop:.2f} GFLOP per step at {statistics.median(peaks) / 1e9:.0f} GFLOP/s, measured on "
                 "the step's layer shapes)"
             )
         )
-        print(f"  {name:<17}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")
+        if name in compile_seconds:
+            detail += f" compiling {compile_seconds[name]:.0f} s"
+        print(f"  {name:<20}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")
     sample = sampling_seconds(args.batch_size, args.obs_dim, args.act_dim)
     print(
         f"  sampling the four roles: {1000 * sample:.2f} ms per batch = "

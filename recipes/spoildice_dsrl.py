@@ -61,7 +61,7 @@ from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.files import write_atomic
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
-from spoil_torchrl.trainers import offline_trainer, stop_on_signals
+from spoil_torchrl.trainers import CompiledStepper, offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
 from spoil_torchrl.trainers.checkpoint import (
     CheckpointError,
@@ -335,6 +335,8 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         )
         write_lock(run_dir)  # heartbeat
 
+    if train.compile:  # the whole update as one compiled graph; says so and runs eagerly where it cannot
+        training.stepper = CompiledStepper.from_stepper(training.stepper)
     trainer = offline_trainer(
         training.stepper,
         buffers.sample,
@@ -363,6 +365,7 @@ def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start
         status="finished",
         aggregate=aggregate(results["evaluations"], last),
         last_evaluations=last,
+        update_step="compiled" if getattr(training.stepper, "compiled", False) else "eager",
         train_seconds=time.perf_counter() - train_start,
         total_seconds=time.perf_counter() - start,
     )

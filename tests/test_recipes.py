@@ -89,7 +89,8 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     from spoil_torchrl.eval import read_rollouts
     from spoil_torchrl.experts import load_policy
 
-    proc, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset)
+    proc, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "train.compile=true")
+    assert results["update_step"] == "compiled" and "runs eagerly" not in proc.stdout + proc.stderr
     assert "| normalized_feasible_return |" in proc.stdout
     assert "| normalized_feasible_return |" in (tmp_path / "spoildice_dsrl.log").read_text()
     assert "\x1b" not in proc.stdout + proc.stderr and "AdroitHand" not in proc.stderr
@@ -126,6 +127,7 @@ def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
         tmp_path, tiny_pc1_dataset, "algo=bc", "logger=none", "normalize_observations=false"
     )
     assert results["algo"] == "bc" and results["diagnostics"] == {} and results["status"] == "finished"
+    assert results["update_step"] == "eager"  # the smoke preset does not compile
     assert [e["step"] for e in results["evaluations"]] == [100, 200]
     assert "dice_diagnostics" not in results and "dice" not in results["evaluations"][0]
     _, meta = load_policy(tmp_path / "checkpoints" / "policy.pt")
@@ -134,8 +136,13 @@ def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
 
 
 def test_dsrl_recipe_safedice_gets_its_nonpreferred_role(tmp_path, tiny_pc1_dataset):
-    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=safedice", "logger=none")
+    proc, results = _dsrl_recipe(
+        tmp_path, tiny_pc1_dataset, "algo=safedice", "logger=none", "train.compile=true"
+    )
     assert results["algo"] == "safedice" and results["status"] == "finished"
+    # no compiled form for SafeDICE: one log line, then the eager step
+    assert "train.compile: SafeDICELoss has no compiled form; the update step runs eagerly" in proc.stdout
+    assert results["update_step"] == "eager"
     assert (
         results["data"]["nonpreferred"]["safe_share"] == 0.0
         and results["data"]["nonpreferred"]["episodes"] > 0

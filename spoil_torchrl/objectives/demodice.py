@@ -51,6 +51,29 @@ def demodice_log_weight(advantage: torch.Tensor, alpha: float) -> torch.Tensor:
     return advantage / (1.0 + alpha) - 1.0
 
 
+def demodice_diagnostics(
+    init_nu: torch.Tensor, advantage: torch.Tensor, reward: torch.Tensor, alpha: float
+) -> dict[str, torch.Tensor]:
+    """The detached diagnostics :class:`DemoDICELoss` outputs beside ``loss_nu`` (see its docstring).
+
+    Examples:
+        >>> out = demodice_diagnostics(torch.zeros(2), torch.zeros(2), torch.ones(2), alpha=0.1)
+        >>> out["effective_sample_size"].item(), out["reward_mean"].item()
+        (1.0, 1.0)
+    """
+    with torch.no_grad():
+        log_w = demodice_log_weight(advantage.detach(), alpha)
+        weights = self_normalized_weights(log_w)
+        return {
+            "log_weight_mean": log_mean_exp(log_w),
+            "weight_max": weights.max(),
+            "effective_sample_size": effective_sample_size(weights),
+            "reward_mean": reward.mean(),
+            "nu_init": init_nu.detach().mean(),
+            "advantage_mean": advantage.detach().mean(),
+        }
+
+
 class DemoDICELoss(StateValues, LossModule):
     r"""DemoDICE's dual objective over :math:`\nu` (Kim et al., 2022), regularised toward one role's data.
 
@@ -223,21 +246,11 @@ class DemoDICELoss(StateValues, LossModule):
             loss_nu = loss_nu + self.gradient_penalty * penalty
 
         with torch.no_grad():
-            log_w = demodice_log_weight(advantage, self.alpha)
-            weights = self_normalized_weights(log_w)
+            weights = self_normalized_weights(demodice_log_weight(advantage, self.alpha))
             data.set(keys.weight, weights.reshape(*batch_shape, 1))
             data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
             out = TensorDict(
-                {
-                    "loss_nu": loss_nu,
-                    "log_weight_mean": log_mean_exp(log_w),
-                    "weight_max": weights.max(),
-                    "effective_sample_size": effective_sample_size(weights),
-                    "reward_mean": reward.mean(),
-                    "nu_init": init_nu.mean(),
-                    "advantage_mean": advantage.mean(),
-                },
-                [],
+                {"loss_nu": loss_nu, **demodice_diagnostics(init_nu, advantage, reward, self.alpha)}, []
             )
         self._clear_weakrefs(tensordict, out, "nu_network_params")
         return out

@@ -178,9 +178,31 @@ def nu_gradient_penalty(
         tensor(25., grad_fn=<MeanBackward0>)
     """
     keys = list(current)
+    points = penalty_points(init, current, following)
+    norms = input_gradient_norms(lambda *xs: nu_fn(dict(zip(keys, xs, strict=True))), list(points.values()))
+    return gradient_penalty(norms, target=None)
+
+
+def penalty_points(
+    init: Mapping[object, torch.Tensor],
+    current: Mapping[object, torch.Tensor],
+    following: Mapping[object, torch.Tensor],
+) -> dict[object, torch.Tensor]:
+    """The states :func:`nu_gradient_penalty` penalises: the current states, then points between the first
+    initial and current states, then points between :math:`s` and :math:`s'` (random, one draw per row).
+
+    The current states come first, so nu's values on the first ``n`` rows are nu's values at :math:`s`.
+
+    Examples:
+        >>> s = {"observation": torch.zeros(3, 2)}
+        >>> s0 = {"observation": torch.ones(2, 2)}
+        >>> penalty_points(s0, s, s)["observation"].shape  # 3 current + 2 init-current + 3 current-next
+        torch.Size([8, 2])
+    """
+    keys = list(current)
     n0 = min(init[keys[0]].shape[0], current[keys[0]].shape[0])
-    points = [
-        torch.cat(
+    return {
+        k: torch.cat(
             [
                 current[k],
                 interpolate(init[k][:n0], current[k][:n0]),
@@ -188,6 +210,4 @@ def nu_gradient_penalty(
             ]
         )
         for k in keys
-    ]
-    norms = input_gradient_norms(lambda *xs: nu_fn(dict(zip(keys, xs, strict=True))), points)
-    return gradient_penalty(norms, target=None)
+    }

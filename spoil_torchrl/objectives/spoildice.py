@@ -68,6 +68,74 @@ def spoildice_dual(
     return (1.0 - gamma) * init_nu.mean() + log_mean_exp(advantage) - lagrange
 
 
+def spoildice_losses(
+    init_nu: torch.Tensor,
+    nu: torch.Tensor,
+    next_nu: torch.Tensor,
+    terminated: torch.Tensor,
+    log_ratio: torch.Tensor,
+    support: torch.Tensor,
+    lagrange: torch.Tensor,
+    gamma: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(loss_nu, loss_lambda, advantage)`` of :class:`SpoilDICELoss` from nu's values (no gradient penalty).
+
+    ``loss_nu`` is Eq. (19) with :math:`\\lambda` detached, ``loss_lambda`` Eq. (19) with :math:`\\nu` detached,
+    and ``advantage`` Eq. (7) with :math:`\\lambda` detached (the exponent of the weights). Both the LossModule
+    and the compiled update step (:mod:`spoil_torchrl.trainers.compiled`) call this one function.
+
+    Examples:
+        >>> z = torch.zeros(2)
+        >>> loss_nu, loss_lambda, adv = spoildice_losses(z, z, z, z, z, torch.ones(2), torch.tensor(1.0), 0.9)
+        >>> loss_nu.item(), loss_lambda.item(), adv.tolist()
+        (0.0, 0.0, [1.0, 1.0])
+    """
+    backup = bellman_backup(next_nu, terminated, gamma)
+    adv_nu = spoildice_advantage(log_ratio, support, lagrange.detach(), nu, backup)
+    adv_lambda = adv_nu.detach() + (lagrange - lagrange.detach()) * support
+    loss_nu = spoildice_dual(init_nu, adv_nu, lagrange.detach(), gamma)
+    loss_lambda = spoildice_dual(init_nu.detach(), adv_lambda, lagrange, gamma)
+    return loss_nu, loss_lambda, adv_nu
+
+
+def spoildice_diagnostics(
+    init_nu: torch.Tensor, advantage: torch.Tensor, support: torch.Tensor, lagrange: torch.Tensor
+) -> dict[str, torch.Tensor]:
+    """The detached diagnostics :class:`SpoilDICELoss` outputs beside its losses (see its docstring).
+
+    Examples:
+        >>> out = spoildice_diagnostics(torch.zeros(2), torch.zeros(2), torch.ones(2), torch.tensor(0.5))
+        >>> out["support_weight"].item(), out["effective_sample_size"].item()
+        (1.0, 1.0)
+    """
+    with torch.no_grad():
+        log_w = closed_form_log_weight(advantage.detach())
+        weights = self_normalized_weights(log_w)
+        return {
+            "lagrange": lagrange.detach().clone(),
+            "log_weight_mean": log_mean_exp(log_w),
+            "weight_max": weights.max(),
+            "effective_sample_size": effective_sample_size(weights),
+            "support_fraction": support.mean(),
+            "support_weight": (weights * support).mean(),
+            "nu_init": init_nu.detach().mean(),
+            "advantage_mean": advantage.detach().mean(),
+        }
+
+
+def check_support_indicator(support: torch.Tensor, key: NestedKey) -> None:
+    """Raise a clear ``ValueError`` unless ``support`` (read from ``key``) is a 0/1 indicator (Eq. 13).
+
+    Examples:
+        >>> check_support_indicator(torch.tensor([0.0, 1.0]), "safe_support")
+    """
+    if not torch.compiler.is_compiling() and not bool(((support == 0) | (support == 1)).all()):
+        raise ValueError(
+            f"{key} must be a 0/1 indicator (Eq. 13); got other values. "
+            "Write it with SupportEstimator, or point set_keys(support=...) at the right entry."
+        )
+
+
 class SpoilDICELoss(StateValues, LossModule):
     r"""SpoilDICE's dual objective over :math:`\nu` and the support multiplier :math:`\lambda`.
 
@@ -220,37 +288,20 @@ class SpoilDICELoss(StateValues, LossModule):
         init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
         log_ratio = unlabeled.get(keys.log_ratio).reshape(n).to(nu.dtype)
         support = unlabeled.get(keys.support).reshape(n).to(nu.dtype)
-        if not torch.compiler.is_compiling() and not bool(((support == 0) | (support == 1)).all()):
-            raise ValueError(
-                f"{role_key(keys.unlabeled, keys.support)} must be a 0/1 indicator (Eq. 13); got other values. "
-                "Write it with SupportEstimator, or point set_keys(support=...) at the right entry."
-            )
-        backup = bellman_backup(next_nu, terminated, self.gamma)
-
-        lagrange = self.lagrange
-        adv_nu = spoildice_advantage(log_ratio, support, lagrange.detach(), nu, backup)
-        adv_lambda = adv_nu.detach() + (lagrange - lagrange.detach()) * support
-        loss_nu = spoildice_dual(init_nu, adv_nu, lagrange.detach(), self.gamma)
+        check_support_indicator(support, role_key(keys.unlabeled, keys.support))
+        loss_nu, loss_lambda, adv_nu = spoildice_losses(
+            init_nu, nu, next_nu, terminated, log_ratio, support, self.lagrange, self.gamma
+        )
         loss_nu = loss_nu + self._penalty(init, current, following)
-        loss_lambda = spoildice_dual(init_nu.detach(), adv_lambda, lagrange, self.gamma)
-
         with torch.no_grad():
-            log_w = closed_form_log_weight(adv_nu)
-            weights = self_normalized_weights(log_w)
+            weights = self_normalized_weights(closed_form_log_weight(adv_nu))
             unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
             unlabeled.set(keys.advantage, adv_nu.detach().reshape(*batch_shape, 1))
             out = TensorDict(
                 {
                     "loss_nu": loss_nu,
                     "loss_lambda": loss_lambda,
-                    "lagrange": lagrange.detach().clone(),
-                    "log_weight_mean": log_mean_exp(log_w),
-                    "weight_max": weights.max(),
-                    "effective_sample_size": effective_sample_size(weights),
-                    "support_fraction": support.mean(),
-                    "support_weight": (weights * support).mean(),
-                    "nu_init": init_nu.mean(),
-                    "advantage_mean": adv_nu.mean(),
+                    **spoildice_diagnostics(init_nu, adv_nu, support, self.lagrange),
                 },
                 [],
             )

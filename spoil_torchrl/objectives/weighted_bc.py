@@ -25,6 +25,27 @@ def weighted_nll(log_prob: torch.Tensor, weight: torch.Tensor | None) -> torch.T
     return nll if weight is None else weight.detach().to(nll.dtype) * nll
 
 
+def weighted_bc_outputs(
+    log_prob: torch.Tensor, weight: torch.Tensor | None, reduction: str
+) -> dict[str, torch.Tensor]:
+    """What :class:`WeightedBCLoss` outputs from the batch's log-likelihoods and weights: ``loss_actor``
+    (Eq. 20, reduced) and the detached ``log_prob`` and ``weight_mean``. The LossModule and the compiled update
+    step (:mod:`spoil_torchrl.trainers.compiled`) both call it.
+
+    Examples:
+        >>> out = weighted_bc_outputs(torch.tensor([-1.0, -2.0]), torch.tensor([0.0, 2.0]), "mean")
+        >>> out["loss_actor"].item(), out["log_prob"].item(), out["weight_mean"].item()
+        (2.0, -1.5, 1.0)
+    """
+    return {
+        "loss_actor": reduce(weighted_nll(log_prob, weight), reduction),
+        "log_prob": log_prob.detach().mean(),
+        "weight_mean": torch.ones((), device=log_prob.device)
+        if weight is None
+        else weight.detach().float().mean(),
+    }
+
+
 class WeightedBCLoss(LossModule):
     r"""Weighted behavioural cloning :math:`E_{(s,a)\sim D}[-w(s,a) \log \pi(a|s)]` (Eq. 20).
 
@@ -134,16 +155,6 @@ class WeightedBCLoss(LossModule):
             dist = self.actor_network.get_dist(data)
         log_prob = dist.log_prob(action).reshape(-1)
         weight = None if keys.weight is None else role.get(keys.weight).reshape(-1)
-        loss = weighted_nll(log_prob, weight)
-        out = TensorDict(
-            {
-                "loss_actor": reduce(loss, self.reduction),
-                "log_prob": log_prob.detach().mean(),
-                "weight_mean": torch.ones((), device=log_prob.device)
-                if weight is None
-                else weight.detach().float().mean(),
-            },
-            [],
-        )
+        out = TensorDict(weighted_bc_outputs(log_prob, weight, self.reduction), [])
         self._clear_weakrefs(tensordict, out, "actor_network_params")
         return out

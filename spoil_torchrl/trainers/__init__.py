@@ -1,5 +1,6 @@
 """Training loops: TorchRL Trainer glue for offline learning."""
 
+from spoil_torchrl.trainers.compiled import CompiledStepper
 from spoil_torchrl.trainers.offline import (
     MultiLossStepper,
     OfflineBatchSource,
@@ -10,6 +11,7 @@ from spoil_torchrl.trainers.offline import (
 )
 
 __all__ = [
+    "CompiledStepper",
     "MultiLossStepper",
     "OfflineBatchSource",
     "SampleBuffers",

@@ -166,6 +166,24 @@ class StepEvery:
         self.calls = int(state_dict["calls"])
 
 
+def scalar_outputs(outputs: Mapping[str, Mapping[str, torch.Tensor]]) -> TensorDict:
+    """The scalar entries of each loss's outputs, detached, as ``<loss name>.<entry>`` (what a stepper returns).
+
+    Examples:
+        >>> scalar_outputs({"bc": {"loss_actor": torch.tensor(1.0), "per_sample": torch.ones(3)}})["bc.loss_actor"]
+        tensor(1.)
+    """
+    return TensorDict(
+        {
+            f"{name}.{key}": value.detach().float().mean()
+            for name, out in outputs.items()
+            for key, value in out.items()
+            if value.numel() == 1
+        },
+        batch_size=[],
+    )
+
+
 class MultiLossStepper(OptimizationStepper):
     """One optimisation step of several LossModules with their own optimisers (and LR schedules).
 
@@ -204,15 +222,7 @@ class MultiLossStepper(OptimizationStepper):
             optimizer.step()
         for scheduler in self.schedulers:
             scheduler.step()
-        return TensorDict(
-            {
-                f"{name}.{key}": value.detach().float().mean()
-                for name, out in outputs.items()
-                for key, value in out.items()
-                if value.numel() == 1
-            },
-            batch_size=[],
-        )
+        return scalar_outputs(outputs)
 
     def state_dict(self) -> dict[str, Any]:
         return {

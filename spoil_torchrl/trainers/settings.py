@@ -63,6 +63,7 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "gradient_penalty": (_penalty, "a number >= 0 (or one per role)"),
     "nu_gradient_penalty": (_penalty, "a number >= 0"),
     "hidden_cells": (_layers, "a list of layer sizes >= 1"),
+    "compile": (lambda v: isinstance(v, bool), "true or false"),
     "alpha": (
         lambda v: v == "auto" or _non_negative(v),
         "a number >= 0 (or auto where the algorithm allows)",

@@ -1,0 +1,153 @@
+"""The compiled update step: a main stage's whole update (every loss, the gradients, nu's gradient penalty with
+its double backward) traced by ``torch.compile`` as one graph over plain tensors.
+
+Why plain tensors. A LossModule puts its functional parameters in place with tensordict's ``to_module``, and
+Dynamo skips any frame that does so: compiling the LossModules themselves runs them eagerly (measured, see
+CONTRIBUTING.md). :class:`CompiledStepper` therefore reads each loss's networks and parameters, evaluates the
+same equation functions the LossModule calls (:func:`~spoil_torchrl.objectives.spoildice.spoildice_losses`,
+:func:`~spoil_torchrl.objectives.weighted_bc.weighted_bc_outputs`, ...) through
+:func:`torch.func.functional_call`, and differentiates the sum of the ``loss_*`` terms with
+:func:`torch.func.grad_and_value`, which Dynamo traces whole. The gradients are handed to the losses' own
+optimisers, so parameters, optimiser state, schedules, checkpoints and resuming are those of the eager step.
+
+What differs from the eager step, and why the numbers agree only to float tolerance:
+
+* nu is evaluated on the penalty's points (whose first rows are the current states, see
+  :func:`~spoil_torchrl.objectives.functional.penalty_points`) once, for both the dual and the penalty, instead
+  of on the current states a second time: the same values, one forward pass of the batch fewer;
+* the compiler fuses and reorders float operations.
+
+The random numbers (the penalty's interpolation points) are drawn outside the graph, in the eager step's order,
+so a compiled run consumes the same random stream as an eager one; a compiled run is as deterministic as an
+eager one.
+
+A loss gets a compiled form by a class registered in ``COMPILED_FORMS`` (:mod:`~spoil_torchrl.trainers.compiled_forms`;
+see CONTRIBUTING.md, "How to add a loss").
+A stepper with a loss that has none, a network the plain-tensor path cannot read, or a step that fails to
+compile trains eagerly, said once in the log.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torch.func import grad_and_value
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.trainers.compiled_forms import NotCompilable, compiled_forms
+from spoil_torchrl.trainers.offline import MultiLossStepper, scalar_outputs
+
+log = logging.getLogger(__name__)
+
+
+def update_gradients(forms: Mapping[str, Any]) -> Callable:
+    """The uncompiled update of a step's compiled forms: ``(params, inputs) -> (grads, (total, outputs))``, with
+    ``params`` and ``inputs`` keyed by loss name (each loss's :meth:`parameters` detached, its :meth:`inputs` of a
+    batch), the gradients of the summed ``loss_*`` terms in ``params``' structure, and each loss's outputs. A pure
+    function: it can be compiled, or vmapped over a leading seed dimension of stacked parameters and inputs."""
+
+    def total_loss(params, inputs):
+        produced: dict = {}
+        total, outputs = 0.0, {}
+        for name, form in forms.items():
+            loss, outputs[name] = form(params[name], inputs[name], produced)
+            total = total + loss
+        return total, outputs
+
+    return grad_and_value(total_loss, has_aux=True)
+
+
+class CompiledStepper(MultiLossStepper):
+    """:class:`~spoil_torchrl.trainers.offline.MultiLossStepper` whose step is one ``torch.compile``\\ d graph.
+
+    Same constructor, outputs (``<loss>.<entry>`` scalars), optimisers and state dict as the eager stepper. When
+    a loss has no compiled form, or the first step fails to compile, it says so once (a warning of this module's
+    logger) and steps eagerly from then on; that first step's random draws are undone first, so the run is the
+    eager run.
+
+    Args:
+        losses, optimizers, schedulers: as for :class:`MultiLossStepper`.
+        mode: ``torch.compile`` mode; ``None`` picks ``"reduce-overhead"`` (CUDA graphs) for parameters on a GPU
+            and the default mode otherwise.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.modules import make_actor
+        >>> from spoil_torchrl.objectives import WeightedBCLoss
+        >>> loss = WeightedBCLoss(make_actor(3, 2, hidden_cells=(8,)), role="performant")
+        >>> stepper = CompiledStepper({"actor": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)])
+        >>> batch = TensorDict({"performant": TensorDict({"observation": torch.randn(16, 3),
+        ...                                               "action": torch.rand(16, 2) * 2 - 1}, [16])}, [])
+        >>> sorted(stepper.step(None, batch).keys())
+        ['actor.log_prob', 'actor.loss_actor', 'actor.weight_mean']
+    """
+
+    def __init__(
+        self,
+        losses: Mapping[str, LossModule],
+        optimizers,
+        schedulers=(),
+        *,
+        mode: str | None = None,
+    ) -> None:
+        super().__init__(losses, optimizers, schedulers)
+        self.mode = mode
+        self.compiled = False  # True once a step has run compiled
+        self._fn = None
+        try:
+            self._forms: dict[str, Any] | None = compiled_forms(self.losses)
+        except NotCompilable as err:
+            log.warning("train.compile: %s; the update step runs eagerly", err)
+            self._forms = None
+
+    @classmethod
+    def from_stepper(cls, stepper: MultiLossStepper, **kwargs) -> CompiledStepper:
+        """The compiled version of an eager stepper (same losses, optimisers and schedules)."""
+        return cls(stepper.losses, stepper.optimizers, stepper.schedulers, **kwargs)
+
+    def _parameters(self) -> dict[str, dict[str, nn.Parameter]]:
+        return {name: form.parameters() for name, form in self._forms.items()}
+
+    def _build(self, device: torch.device):
+        mode = self.mode or ("reduce-overhead" if device.type == "cuda" else None)
+        return torch.compile(update_gradients(self._forms), mode=mode, fullgraph=True, dynamic=False)
+
+    def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
+        if self._forms is None:
+            return super().step(trainer, sub_batch)
+        rng = torch.get_rng_state()
+        parameters = self._parameters()
+        inputs = {name: form.inputs(sub_batch) for name, form in self._forms.items()}
+        detached = {name: {k: p.detach() for k, p in ps.items()} for name, ps in parameters.items()}
+        try:
+            if self._fn is None:
+                device = next(p for ps in parameters.values() for p in ps.values()).device
+                self._fn = self._build(device)
+            grads, (_, outputs) = self._fn(detached, inputs)
+        except Exception as err:
+            if self.compiled:
+                raise
+            log.warning(
+                "train.compile: the update step did not compile (%s: %s); it runs eagerly",
+                type(err).__name__,
+                str(err).strip().splitlines()[0] if str(err).strip() else "",
+            )
+            self._forms, self._fn = None, None
+            torch.set_rng_state(rng)
+            return super().step(trainer, sub_batch)
+        self.compiled = True
+        for optimizer in self.optimizers:
+            optimizer.zero_grad(set_to_none=True)
+        for name, ps in parameters.items():
+            for key, p in ps.items():
+                p.grad = grads[name][key]
+        for optimizer in self.optimizers:
+            optimizer.step()
+        for scheduler in self.schedulers:
+            scheduler.step()
+        return scalar_outputs(outputs)

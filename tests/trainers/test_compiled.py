@@ -1,0 +1,176 @@
+"""The compiled update step: the eager step's numbers within float tolerance, the same random stream, and a
+clean (logged) fall-back to the eager step."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+import torch
+
+from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
+from spoil_torchrl.objectives import DemoDICELoss, PUDiscriminatorLoss, SpoilDICELoss, WeightedBCLoss
+from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
+from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
+
+STEPS = 4
+
+
+def _sgd(params, lr: float = 1e-2) -> torch.optim.Optimizer:
+    """The tests' optimiser. Not Adam: nu's constant offset is free in every DICE dual, so the gradient of nu's
+    output bias is 0 up to float noise, which Adam's first steps scale to +/- lr whatever its size; any two
+    correct implementations (or machines) then differ by lr in that bias. SGD keeps float noise as small as it
+    is, so a few steps of two implementations can be compared to a tight tolerance."""
+    return torch.optim.SGD(list(params), lr=lr)
+
+
+def _spoildice(distribution: str, penalty: float):
+    """SpoilDICE + weighted BC on its weights, three Adams: the same initial weights on every call."""
+    torch.manual_seed(3)
+    dice = SpoilDICELoss(make_value_network(OBS_DIM, hidden_cells=(32, 32)), gradient_penalty=penalty)
+    actor = WeightedBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32, 32), distribution=distribution),
+        role="unlabeled",
+        weight="dice_weight",
+    )
+    optimizers = [
+        _sgd(dice.nu_network_params.values(True, True)),
+        _sgd([dice.lagrange]),
+        _sgd(actor.parameters()),
+    ]
+    return {"dice": dice, "actor": actor}, optimizers
+
+
+def _demodice_s():
+    """DemoDICE-S's main stage: nu on D_S with the reward log d_P/d_S, weighted BC on D_S."""
+    torch.manual_seed(3)
+    dice = DemoDICELoss(
+        make_value_network(OBS_DIM, hidden_cells=(32, 32)),
+        gradient_penalty=10.0,
+        regularization="safe",
+        reward="log_ratio_performant",
+    )
+    actor = WeightedBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="safe", weight="dice_weight"
+    )
+    optimizers = [_sgd(dice.nu_network_params.values(True, True)), _sgd(actor.parameters())]
+    return {"dice": dice, "actor": actor}, optimizers
+
+
+def _filtered_bc():
+    """Weighted BC with its weight read from the batch (filtered BC's ``safe_support`` on D_P)."""
+    torch.manual_seed(3)
+    actor = WeightedBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="performant", weight="safe_support"
+    )
+    return {"actor": actor}, [_sgd(actor.parameters())]
+
+
+def _run(stepper, batches):
+    """``STEPS`` steps from a fixed random stream; the outputs, the parameters and the stream's state after."""
+    torch.manual_seed(11)
+    outputs = [stepper.step(None, batch.clone()) for batch in batches]
+    params = {
+        f"{name}.{key}": p.detach().clone()
+        for name, loss in stepper.losses.items()
+        for key, p in loss.named_parameters()
+    }
+    return outputs, params, torch.get_rng_state()
+
+
+@pytest.fixture(scope="module")
+def batches():
+    torch.manual_seed(5)
+    return [dual_batch(n_unl=64, n_init=16) for _ in range(STEPS)]
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        pytest.param(lambda: _spoildice("normal", 1e-4), id="spoildice-normal-penalty"),
+        pytest.param(lambda: _spoildice("tanh_normal", 10.0), id="spoildice-tanh-penalty10"),
+        pytest.param(lambda: _spoildice("normal", 0.0), id="spoildice-no-penalty"),
+        pytest.param(_demodice_s, id="demodice-s"),
+        pytest.param(_filtered_bc, id="filtered-bc"),
+    ],
+)
+def test_compiled_steps_match_eager_steps(build, batches):
+    eager_out, eager_params, eager_rng = _run(MultiLossStepper(*build()), batches)
+    compiled = CompiledStepper(*build())
+    out, params, rng = _run(compiled, batches)
+    assert compiled.compiled, "the step fell back to eager"
+    assert torch.equal(rng, eager_rng)  # the penalty's random points: the same draws, in the same order
+    for a, b in zip(eager_out, out, strict=True):
+        assert sorted(a.keys()) == sorted(b.keys())
+        for key in a.keys():
+            torch.testing.assert_close(
+                b[key], a[key], rtol=1e-4, atol=1e-5, msg=lambda m, key=key: f"{key}: {m}"
+            )
+    changed = False
+    for key, value in eager_params.items():
+        torch.testing.assert_close(
+            params[key], value, rtol=1e-4, atol=1e-5, msg=lambda m, key=key: f"{key}: {m}"
+        )
+        changed |= not torch.equal(value, _initial(build, key))
+    assert changed, "no parameter moved"
+
+
+def _initial(build, key: str) -> torch.Tensor:
+    losses, _ = build()
+    name, inner = key.split(".", 1)
+    return dict(losses[name].named_parameters())[inner].detach()
+
+
+def _adam(losses, optimizers):
+    """The same losses with the recipe's optimiser, Adam."""
+    return losses, [torch.optim.Adam(o.param_groups[0]["params"], lr=1e-3) for o in optimizers]
+
+
+def test_compiled_steps_are_deterministic(batches):
+    _, first, _ = _run(CompiledStepper(*_adam(*_spoildice("normal", 1e-4))), batches)
+    _, second, _ = _run(CompiledStepper(*_adam(*_spoildice("normal", 1e-4))), batches)
+    for key, value in first.items():
+        assert torch.equal(second[key], value), key
+
+
+def test_a_loss_without_compiled_form_runs_eagerly_and_says_so(caplog, batches):
+    def build():
+        torch.manual_seed(3)
+        disc = PUDiscriminatorLoss(make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=(16,)), positive="safe")
+        return {"disc": disc}, [torch.optim.Adam(disc.parameters(), lr=1e-3)]
+
+    with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
+        stepper = CompiledStepper(*build())
+    assert "PUDiscriminatorLoss has no compiled form; the update step runs eagerly" in caplog.text
+    _, eager_params, _ = _run(MultiLossStepper(*build()), batches)
+    _, params, _ = _run(stepper, batches)
+    assert not stepper.compiled
+    for key, value in eager_params.items():
+        assert torch.equal(params[key], value), key
+
+
+def test_a_step_that_fails_to_compile_runs_eagerly_from_the_same_random_state(caplog, monkeypatch, batches):
+    def broken_compile(fn, **kwargs):
+        def fails(*args):
+            raise RuntimeError("no C++ compiler found\nsecond line")
+
+        return fails
+
+    _, eager_params, eager_rng = _run(MultiLossStepper(*_spoildice("normal", 1e-4)), batches)
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    stepper = CompiledStepper(*_spoildice("normal", 1e-4))
+    with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
+        _, params, rng = _run(stepper, batches)
+    assert not stepper.compiled
+    assert caplog.text.count("did not compile (RuntimeError: no C++ compiler found); it runs eagerly") == 1
+    assert torch.equal(rng, eager_rng)
+    for key, value in eager_params.items():
+        assert torch.equal(params[key], value), key
+
+
+def test_compiled_stepper_keeps_the_eager_state_dict():
+    losses, optimizers = _spoildice("normal", 1e-4)
+    eager = MultiLossStepper(losses, optimizers)
+    compiled = CompiledStepper.from_stepper(eager)
+    assert compiled.losses == eager.losses and compiled.optimizers == eager.optimizers
+    assert compiled.state_dict().keys() == eager.state_dict().keys()
