@@ -74,6 +74,60 @@ def pu_log_ratio(logit: torch.Tensor, class_prior: float) -> torch.Tensor:
     return F.logsigmoid(logit) - math.log(class_prior)
 
 
+def discriminator_outputs(
+    pos_logits: torch.Tensor, unl_logits: torch.Tensor, class_prior: float | None, reduction: str
+) -> dict[str, torch.Tensor]:
+    """:class:`PUDiscriminatorLoss`'s outputs from the logits, gradient penalty aside: ``loss_positive`` and
+    ``loss_unlabeled`` (Eq. 16/17, or the non-negative PU risk with ``class_prior``) and the detached
+    ``logit_positive``, ``logit_unlabeled`` and ``accuracy``. The LossModule and the compiled update step both
+    call it.
+
+    Examples:
+        >>> out = discriminator_outputs(torch.ones(2), -torch.ones(2), None, "mean")
+        >>> round(out["loss_positive"].item(), 4), out["accuracy"].item()
+        (0.3133, 1.0)
+    """
+    if class_prior is None:
+        loss_pos, loss_unl = (reduce(x, reduction) for x in logistic_ratio_losses(pos_logits, unl_logits))
+        pos_ratio, unl_ratio = pos_logits, unl_logits
+    else:
+        loss_pos, loss_unl = nnpu_risks(pos_logits, unl_logits, class_prior)
+        pos_ratio, unl_ratio = pu_log_ratio(pos_logits, class_prior), pu_log_ratio(unl_logits, class_prior)
+    accuracy = 0.5 * ((pos_ratio > 0).float().mean() + (unl_ratio <= 0).float().mean())
+    return {
+        "loss_positive": loss_pos,
+        "loss_unlabeled": loss_unl,
+        "logit_positive": pos_logits.detach().mean(),
+        "logit_unlabeled": unl_logits.detach().mean(),
+        "accuracy": accuracy.detach(),
+    }
+
+
+def discriminator_penalty_points(
+    positive: TensorDictBase, unlabeled: TensorDictBase, keys: list[NestedKey]
+) -> list[torch.Tensor]:
+    """The inputs :class:`PUDiscriminatorLoss`'s gradient penalty is taken at, one tensor per input key: points
+    between positive and unlabeled rows, then between shuffled and unlabeled rows (DemoDICE's reference form).
+    Random: one permutation, then per key one uniform draw per row for each kind.
+
+    Examples:
+        >>> role = TensorDict({"observation": torch.zeros(4, 3)}, [4])
+        >>> [p.shape for p in discriminator_penalty_points(role[:2], role, ["observation"])]
+        [torch.Size([6, 3])]
+    """
+    n = min(positive.shape[0], unlabeled.shape[0])
+    shuffled = unlabeled[torch.randperm(unlabeled.shape[0], device=unlabeled.device)]
+    return [
+        torch.cat(
+            [
+                interpolate(positive.get(k)[:n], unlabeled.get(k)[:n]),
+                interpolate(shuffled.get(k), unlabeled.get(k)),
+            ]
+        )
+        for k in keys
+    ]
+
+
 class LogRatio(TensorDictModuleBase):
     """A frozen view of a discriminator that writes :math:`\\log \\hat r` (Eq. 18) at ``out_key``.
 
@@ -252,18 +306,8 @@ class PUDiscriminatorLoss(LossModule):
     def _penalty(self, positive: TensorDictBase, unlabeled: TensorDictBase) -> torch.Tensor:
         if self.gradient_penalty == 0:
             return torch.zeros((), device=unlabeled.device)
-        n = min(positive.shape[0], unlabeled.shape[0])
         keys = self.discriminator_network.in_keys
-        shuffled = unlabeled[torch.randperm(unlabeled.shape[0], device=unlabeled.device)]
-        points = [
-            torch.cat(
-                [
-                    interpolate(positive.get(k)[:n], unlabeled.get(k)[:n]),
-                    interpolate(shuffled.get(k), unlabeled.get(k)),
-                ]
-            )
-            for k in keys
-        ]
+        points = discriminator_penalty_points(positive, unlabeled, keys)
 
         def logit_fn(*tensors: torch.Tensor) -> torch.Tensor:
             return self._logits(TensorDict(dict(zip(keys, tensors, strict=True)), [tensors[0].shape[0]]))
@@ -280,26 +324,13 @@ class PUDiscriminatorLoss(LossModule):
         n_pos = positive.shape[0]
         logits = self._logits(torch.cat([positive, unlabeled], 0))
         pos_logits, unl_logits = logits[:n_pos], logits[n_pos:]
-        if self.class_prior is None:
-            loss_pos, loss_unl = (
-                reduce(x, self.reduction) for x in logistic_ratio_losses(pos_logits, unl_logits)
-            )
-            pos_ratio, unl_ratio = pos_logits, unl_logits
-        else:
-            loss_pos, loss_unl = nnpu_risks(pos_logits, unl_logits, self.class_prior)
-            pos_ratio, unl_ratio = (
-                pu_log_ratio(pos_logits, self.class_prior),
-                pu_log_ratio(unl_logits, self.class_prior),
-            )
-        accuracy = 0.5 * ((pos_ratio > 0).float().mean() + (unl_ratio <= 0).float().mean())
+        outputs = discriminator_outputs(pos_logits, unl_logits, self.class_prior, self.reduction)
         out = TensorDict(
             {
-                "loss_positive": loss_pos,
-                "loss_unlabeled": loss_unl,
+                "loss_positive": outputs.pop("loss_positive"),
+                "loss_unlabeled": outputs.pop("loss_unlabeled"),
                 "loss_gradient_penalty": self._penalty(positive, unlabeled),
-                "logit_positive": pos_logits.detach().mean(),
-                "logit_unlabeled": unl_logits.detach().mean(),
-                "accuracy": accuracy.detach(),
+                **outputs,
             },
             [],
         )

@@ -44,6 +44,7 @@ from spoil_torchrl.objectives import (
     safedice_auto_alpha,
     safedice_reward,
 )
+from spoil_torchrl.trainers.compiled import CompiledStepper
 from spoil_torchrl.trainers.offline import MultiLossStepper, StepEvery, offline_trainer
 
 
@@ -141,7 +142,7 @@ def train_discriminators(
     ``against`` (default ``"unlabeled"``: Eq. 16-17; DemoDICE-S uses ``"safe"``), trained for ``cfg["steps"]``
     steps with Adam (``cfg["lr"]``) through the offline :class:`~torchrl.trainers.Trainer`.
     ``cfg["gradient_penalty"]`` maps each positive role to its penalty coefficient (Table J: 10 for C_P, none
-    for C_S)."""
+    for C_S). ``cfg["compile"]`` (default false) steps them with a :class:`CompiledStepper`."""
     penalties = cfg["gradient_penalty"]
     missing = [role for role in positives if role not in penalties]
     if missing:
@@ -156,8 +157,9 @@ def train_discriminators(
         for role in positives
     }
     optimizers = [_adam(loss.parameters(), cfg["lr"]) for loss in losses.values()]
+    stepper_class = CompiledStepper if cfg.get("compile", False) else MultiLossStepper
     trainer = offline_trainer(
-        MultiLossStepper(losses, optimizers),
+        stepper_class(losses, optimizers),
         buffers.sample,
         total_steps=int(cfg["steps"]),
         steps_per_batch=min(100, int(cfg["steps"])),

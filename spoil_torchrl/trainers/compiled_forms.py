@@ -27,6 +27,11 @@ from spoil_torchrl.objectives.demodice import (
     demodice_dual,
     demodice_log_weight,
 )
+from spoil_torchrl.objectives.discriminator import (
+    PUDiscriminatorLoss,
+    discriminator_outputs,
+    discriminator_penalty_points,
+)
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
     dice_advantage,
@@ -52,25 +57,33 @@ class NotCompilable(Exception):
 
 
 class PlainNetwork:
-    """A :class:`~tensordict.nn.TensorDictModule` with one input as a function of ``(parameters, tensor)``.
+    """A :class:`~tensordict.nn.TensorDictModule` as a function of ``(parameters, *input tensors)``.
 
     ``params`` are the LossModule's own parameters (the ones its optimiser steps), named as
-    :func:`torch.func.functional_call` expects them for ``module``.
+    :func:`torch.func.functional_call` expects them for ``module``; the inputs are passed in ``in_keys`` order.
     """
 
     def __init__(self, network: nn.Module, params: TensorDictBase, what: str) -> None:
-        if not isinstance(network, TensorDictModule) or len(network.in_keys) != 1:
-            raise NotCompilable(f"{what} is not a TensorDictModule with one input")
+        if not isinstance(network, TensorDictModule) or not network.in_keys:
+            raise NotCompilable(f"{what} is not a TensorDictModule")
         flat = params.flatten_keys(".")
         if any(not key.startswith("module.") for key in flat.keys()):
             raise NotCompilable(f"{what}'s parameters are not those of its inner module")
+        self.what = what
         self.module = network.module
-        self.in_key = network.in_keys[0]
+        self.in_keys = list(network.in_keys)
         self.out_keys = list(network.out_keys)
         self.params = {key.removeprefix("module."): value for key, value in flat.items()}
 
-    def __call__(self, params: Tensors, x: torch.Tensor):
-        return functional_call(self.module, params, (x,))
+    @property
+    def in_key(self) -> NestedKey:
+        """The one input of a network of states (nu, the policy)."""
+        if len(self.in_keys) != 1:
+            raise NotCompilable(f"{self.what} reads {len(self.in_keys)} inputs, not one")
+        return self.in_keys[0]
+
+    def __call__(self, params: Tensors, *xs: torch.Tensor):
+        return functional_call(self.module, params, xs)
 
 
 class CompiledDual:
@@ -83,6 +96,7 @@ class CompiledDual:
     def __init__(self, loss: LossModule) -> None:
         self.loss = loss
         self.nu = PlainNetwork(loss.nu_network, loss.nu_network_params, f"{type(loss).__name__}'s nu_network")
+        self.nu.in_key  # noqa: B018 (raises NotCompilable unless nu reads one input)
         self.produces = {role_key(self.role, loss.tensor_keys.weight)}
 
     def parameters(self) -> dict[str, nn.Parameter]:
@@ -218,6 +232,7 @@ class CompiledWeightedBC:
         self.policy = PlainNetwork(
             modules[0], loss.actor_network_params.get(("module", "0")), "WeightedBCLoss's actor"
         )
+        self.policy.in_key  # noqa: B018 (raises NotCompilable unless the policy reads one input)
         if self.policy.out_keys != ["loc", "scale"]:
             raise NotCompilable("WeightedBCLoss's actor network does not write loc and scale")
         self.distribution = dist_module.distribution_class
@@ -255,11 +270,64 @@ class CompiledWeightedBC:
         return outputs["loss_actor"], outputs
 
 
+class CompiledDiscriminator:
+    """The compiled form of :class:`~spoil_torchrl.objectives.PUDiscriminatorLoss` (Eq. 16/17 or the
+    non-negative PU risk, and the WGAN-style gradient penalty): the discriminators' pre-training."""
+
+    def __init__(self, loss: PUDiscriminatorLoss) -> None:
+        self.loss = loss
+        self.net = PlainNetwork(
+            loss.discriminator_network,
+            loss.discriminator_network_params,
+            "PUDiscriminatorLoss's discriminator",
+        )
+        self.produces: set = set()
+
+    def parameters(self) -> dict[str, nn.Parameter]:
+        return {f"net.{k}": v for k, v in self.net.params.items()}
+
+    def inputs(self, batch: TensorDictBase) -> Tensors:
+        keys, roles = self.net.in_keys, self.loss.tensor_keys
+        positive = get_role(batch, roles.positive).select(*keys).reshape(-1)
+        unlabeled = get_role(batch, roles.unlabeled).select(*keys).reshape(-1)
+        out = {f"positive.{i}": positive.get(k) for i, k in enumerate(keys)}
+        out |= {f"unlabeled.{i}": unlabeled.get(k) for i, k in enumerate(keys)}
+        if self.loss.gradient_penalty != 0:
+            points = discriminator_penalty_points(positive, unlabeled, keys)
+            out |= {f"points.{i}": p for i, p in enumerate(points)}
+        return out
+
+    def __call__(
+        self, params: Tensors, x: Tensors, produced: dict
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        net_params = {k.removeprefix("net."): v for k, v in params.items()}
+        inputs = range(len(self.net.in_keys))
+
+        def logits(*xs: torch.Tensor) -> torch.Tensor:
+            return self.net(net_params, *xs).reshape(-1)
+
+        n_pos = x["positive.0"].shape[0]
+        both = logits(*(torch.cat([x[f"positive.{i}"], x[f"unlabeled.{i}"]]) for i in inputs))
+        outputs = discriminator_outputs(
+            both[:n_pos], both[n_pos:], self.loss.class_prior, self.loss.reduction
+        )
+        penalty = torch.zeros(())
+        if "points.0" in x:
+            grads = grad(lambda *xs: logits(*xs).sum(), argnums=tuple(inputs))(
+                *(x[f"points.{i}"] for i in inputs)
+            )
+            norms = torch.cat([g.reshape(g.shape[0], -1) for g in grads], dim=-1).norm(dim=-1)
+            penalty = self.loss.gradient_penalty * gradient_penalty(norms, target=1.0)
+        total = outputs["loss_positive"] + outputs["loss_unlabeled"] + penalty
+        return total, {**outputs, "loss_gradient_penalty": penalty}
+
+
 #: LossModule class -> its compiled form (built from the loss and the entries earlier losses of the step produce).
 COMPILED_FORMS: dict[type, Callable[[LossModule, set], Any]] = {
     SpoilDICELoss: lambda loss, produced: CompiledSpoilDICE(loss),
     DemoDICELoss: lambda loss, produced: CompiledDemoDICE(loss),
     WeightedBCLoss: CompiledWeightedBC,
+    PUDiscriminatorLoss: lambda loss, produced: CompiledDiscriminator(loss),
 }
 
 

@@ -9,7 +9,13 @@ import pytest
 import torch
 
 from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
-from spoil_torchrl.objectives import DemoDICELoss, PUDiscriminatorLoss, SpoilDICELoss, WeightedBCLoss
+from spoil_torchrl.objectives import (
+    DemoDICELoss,
+    PUDiscriminatorLoss,
+    SafeDICELoss,
+    SpoilDICELoss,
+    WeightedBCLoss,
+)
 from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
 from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
 
@@ -57,6 +63,21 @@ def _demodice_s():
     return {"dice": dice, "actor": actor}, optimizers
 
 
+def _discriminators(class_prior: float | None = None):
+    """Stage 1: C_P (gradient penalty 10) and C_S (none) against D_U, as the recipe pre-trains them."""
+    torch.manual_seed(3)
+    losses = {
+        f"disc_{role}": PUDiscriminatorLoss(
+            make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=(32, 32)),
+            positive=role,
+            gradient_penalty=penalty,
+            class_prior=class_prior,
+        )
+        for role, penalty in (("performant", 10.0), ("safe", 0.0))
+    }
+    return losses, [_sgd(loss.parameters()) for loss in losses.values()]
+
+
 def _filtered_bc():
     """Weighted BC with its weight read from the batch (filtered BC's ``safe_support`` on D_P)."""
     torch.manual_seed(3)
@@ -92,6 +113,8 @@ def batches():
         pytest.param(lambda: _spoildice("normal", 0.0), id="spoildice-no-penalty"),
         pytest.param(_demodice_s, id="demodice-s"),
         pytest.param(_filtered_bc, id="filtered-bc"),
+        pytest.param(_discriminators, id="discriminators"),
+        pytest.param(lambda: _discriminators(class_prior=0.3), id="discriminators-nnpu"),
     ],
 )
 def test_compiled_steps_match_eager_steps(build, batches):
@@ -136,12 +159,13 @@ def test_compiled_steps_are_deterministic(batches):
 def test_a_loss_without_compiled_form_runs_eagerly_and_says_so(caplog, batches):
     def build():
         torch.manual_seed(3)
-        disc = PUDiscriminatorLoss(make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=(16,)), positive="safe")
-        return {"disc": disc}, [torch.optim.Adam(disc.parameters(), lr=1e-3)]
+        dice = SafeDICELoss(make_value_network(OBS_DIM, hidden_cells=(16,)), alpha=0.5)
+        dice.set_keys(logit="log_ratio_performant")  # a logit entry dual_batch has
+        return {"dice": dice}, [torch.optim.Adam(dice.parameters(), lr=1e-3)]
 
     with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
         stepper = CompiledStepper(*build())
-    assert "PUDiscriminatorLoss has no compiled form; the update step runs eagerly" in caplog.text
+    assert "SafeDICELoss has no compiled form; the update step runs eagerly" in caplog.text
     _, eager_params, _ = _run(MultiLossStepper(*build()), batches)
     _, params, _ = _run(stepper, batches)
     assert not stepper.compiled
