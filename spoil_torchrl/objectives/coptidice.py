@@ -195,6 +195,26 @@ def temperature_loss(tau: torch.Tensor, kl: torch.Tensor, epsilon: float) -> tor
     return tau * (epsilon - kl.detach())
 
 
+def lagrange_of(param: torch.Tensor) -> torch.Tensor:
+    """COptiDICE's cost multiplier :math:`\\lambda = \\mathrm{softplus}(\\theta_\\lambda) \\ge 0`.
+
+    Examples:
+        >>> round(lagrange_of(torch.tensor(0.0)).item(), 4)
+        0.6931
+    """
+    return F.softplus(param)
+
+
+def tau_of(param: torch.Tensor) -> torch.Tensor:
+    """COptiDICE's temperature :math:`\\tau = \\mathrm{softplus}(\\theta_\\tau) + 10^{-6} > 0`.
+
+    Examples:
+        >>> round(tau_of(torch.tensor(0.0)).item(), 4)
+        0.6931
+    """
+    return F.softplus(param) + TAU_MIN
+
+
 def _inverse_softplus(x: float) -> float:
     return x + math.log(-math.expm1(-x))
 
@@ -371,12 +391,12 @@ class COptiDICELoss(StateValues, LossModule):
     @property
     def lagrange(self) -> torch.Tensor:
         """:math:`\\lambda = \\mathrm{softplus}(\\theta_\\lambda) \\ge 0` (differentiable in ``lagrange_param``)."""
-        return F.softplus(self.lagrange_param)
+        return lagrange_of(self.lagrange_param)
 
     @property
     def tau(self) -> torch.Tensor:
         """:math:`\\tau = \\mathrm{softplus}(\\theta_\\tau) + 10^{-6}` (differentiable in ``tau_param``)."""
-        return F.softplus(self.tau_param) + TAU_MIN
+        return tau_of(self.tau_param)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -388,6 +408,78 @@ class COptiDICELoss(StateValues, LossModule):
     def _chi(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
         return self._values("chi_network", states)
 
+    def _value_penalty(self, fn, init: dict, current: dict, following: dict) -> torch.Tensor | None:
+        """The weighted gradient penalty of the state network ``fn`` (``None`` when it is off)."""
+        if self.gradient_penalty > 0:
+            return self.gradient_penalty * nu_gradient_penalty(fn, init, current, following)
+        return None
+
+    def losses(
+        self,
+        nu_values: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        nu_penalty: torch.Tensor | None,
+        chi_values: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+        chi_penalty: torch.Tensor | None,
+        reward: torch.Tensor,
+        cost: torch.Tensor,
+        terminated: torch.Tensor,
+        lagrange: torch.Tensor,
+        tau: torch.Tensor,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """The four losses and the diagnostics (the output keys) and the advantage, from nu's (and chi's) values
+        at the initial, current and next states and their weighted gradient penalties (``None``: off; chi's
+        values ``None`` when ``cost_ub_epsilon`` is 0). :meth:`forward` and the compiled update step both call
+        it."""
+        init_nu, nu, next_nu = nu_values
+        advantage = dice_advantage(
+            reward - lagrange.detach() * cost, nu, bellman_backup(next_nu, terminated, self.gamma)
+        )
+        weight = coptidice_weight(advantage, self.alpha)
+        loss_nu = coptidice_dual(init_nu, advantage, weight, self.alpha, self.gamma)
+        if nu_penalty is not None:
+            loss_nu = loss_nu + nu_penalty
+
+        w = weight.detach()
+        cost_estimate = (w * cost).mean()
+        if chi_values is not None:
+            init_chi, chi, next_chi = chi_values
+            residual = cost_flow_residual(
+                init_chi, w, cost, chi, bellman_backup(next_chi, terminated, self.gamma), self.gamma
+            )
+            loss_chi = cost_bound_objective(residual, tau.detach())
+            if chi_penalty is not None:
+                loss_chi = loss_chi + chi_penalty
+            tilt, kl = worst_case_weights(residual.detach(), tau.detach())
+            cost_ub = (tilt * w * cost).mean()
+            loss_tau = temperature_loss(tau, kl, self.cost_ub_epsilon)
+        else:
+            zero = torch.zeros((), dtype=nu.dtype, device=nu.device)
+            loss_chi, loss_tau, kl, cost_ub = zero, zero.clone(), zero.clone(), cost_estimate
+        loss_lagrange = lagrange_loss(lagrange, cost_ub, self.cost_limit)
+
+        with torch.no_grad():
+            normalized = self_normalized_weights(coptidice_log_weight(advantage.detach(), self.alpha))
+            outputs = {
+                "loss_nu": loss_nu,
+                "loss_chi": loss_chi,
+                "loss_tau": loss_tau,
+                "loss_lagrange": loss_lagrange,
+                "lagrange": lagrange.detach(),
+                "tau": tau.detach(),
+                "cost_limit": torch.tensor(self.cost_limit, dtype=nu.dtype, device=nu.device),
+                "cost_ub": cost_ub.detach(),
+                "cost_estimate": cost_estimate,
+                "kl": kl.detach(),
+                "weight_mean": w.mean(),
+                "weight_max": normalized.max(),
+                "effective_sample_size": effective_sample_size(normalized),
+                "f_divergence": soft_chi2(w).mean(),
+                "reward_mean": reward.mean(),
+                "nu_init": init_nu.detach().mean(),
+                "advantage_mean": advantage.detach().mean(),
+            }
+        return outputs, advantage
+
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Compute the four losses and write the weights into ``tensordict[unlabeled]``."""
@@ -398,64 +490,28 @@ class COptiDICELoss(StateValues, LossModule):
         n = batch_shape.numel()
 
         init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
+        nu_penalty = self._value_penalty(self._nu, init, current, following)
+        chi_values, chi_penalty = None, None
+        if self.cost_ub_epsilon > 0:
+            chi_values = self._on_transitions("chi_network", transitions)
+            chi_penalty = self._value_penalty(self._chi, init, current, following)
         reward = data.get(keys.reward).reshape(n).detach().to(nu.dtype)
         cost = data.get(keys.cost).reshape(n).detach().to(nu.dtype)
-        lagrange = self.lagrange
-        advantage = dice_advantage(
-            reward - lagrange.detach() * cost, nu, bellman_backup(next_nu, terminated, self.gamma)
+        outputs, advantage = self.losses(
+            (init_nu, nu, next_nu),
+            nu_penalty,
+            chi_values,
+            chi_penalty,
+            reward,
+            cost,
+            terminated,
+            self.lagrange,
+            self.tau,
         )
-        weight = coptidice_weight(advantage, self.alpha)
-        loss_nu = coptidice_dual(init_nu, advantage, weight, self.alpha, self.gamma)
-        if self.gradient_penalty > 0:
-            loss_nu = loss_nu + self.gradient_penalty * nu_gradient_penalty(
-                self._nu, init, current, following
-            )
-
-        w = weight.detach()
-        cost_estimate = (w * cost).mean()
-        tau = self.tau
-        if self.cost_ub_epsilon > 0:
-            init_chi, chi, next_chi = self._on_transitions("chi_network", transitions)
-            residual = cost_flow_residual(
-                init_chi, w, cost, chi, bellman_backup(next_chi, terminated, self.gamma), self.gamma
-            )
-            loss_chi = cost_bound_objective(residual, tau.detach())
-            if self.gradient_penalty > 0:
-                penalty = nu_gradient_penalty(self._chi, init, current, following)
-                loss_chi = loss_chi + self.gradient_penalty * penalty
-            tilt, kl = worst_case_weights(residual.detach(), tau.detach())
-            cost_ub = (tilt * w * cost).mean()
-            loss_tau = temperature_loss(tau, kl, self.cost_ub_epsilon)
-        else:
-            zero = torch.zeros((), dtype=nu.dtype, device=nu.device)
-            loss_chi, loss_tau, kl, cost_ub = zero, zero.clone(), zero.clone(), cost_estimate
-        loss_lagrange = lagrange_loss(lagrange, cost_ub, self.cost_limit)
-
         with torch.no_grad():
             normalized = self_normalized_weights(coptidice_log_weight(advantage, self.alpha))
             data.set(keys.weight, normalized.reshape(*batch_shape, 1))
             data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
-            out = TensorDict(
-                {
-                    "loss_nu": loss_nu,
-                    "loss_chi": loss_chi,
-                    "loss_tau": loss_tau,
-                    "loss_lagrange": loss_lagrange,
-                    "lagrange": lagrange.detach(),
-                    "tau": tau.detach(),
-                    "cost_limit": torch.tensor(self.cost_limit, dtype=nu.dtype, device=nu.device),
-                    "cost_ub": cost_ub.detach(),
-                    "cost_estimate": cost_estimate,
-                    "kl": kl.detach(),
-                    "weight_mean": w.mean(),
-                    "weight_max": normalized.max(),
-                    "effective_sample_size": effective_sample_size(normalized),
-                    "f_divergence": soft_chi2(w).mean(),
-                    "reward_mean": reward.mean(),
-                    "nu_init": init_nu.mean(),
-                    "advantage_mean": advantage.mean(),
-                },
-                [],
-            )
+        out = TensorDict(outputs, [])
         self._clear_weakrefs(tensordict, out, "nu_network_params", "chi_network_params")
         return out

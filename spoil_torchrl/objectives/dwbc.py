@@ -88,6 +88,39 @@ def dwbc_unlabeled_weight(d: torch.Tensor, offset: float = 1.0) -> torch.Tensor:
     return 1.0 / (1.0 - kept) - offset
 
 
+def dwbc_outputs(
+    log_prob: torch.Tensor, logit: torch.Tensor, n_expert: int, alpha: float, eta: float, offset: float
+) -> dict[str, torch.Tensor]:
+    """:class:`DWBCLoss`'s outputs from the policy's log-likelihoods and the discriminator's logits of the expert
+    rows (the first ``n_expert``) and the unlabeled rows: ``loss_discriminator``, ``loss_actor`` and the detached
+    diagnostics. The LossModule and the compiled update step both call it.
+
+    Examples:
+        >>> out = dwbc_outputs(torch.zeros(4), torch.zeros(4), 2, alpha=7.5, eta=0.5, offset=0.1)
+        >>> round(out["d_expert"].item(), 4), sorted(k for k in out if k.startswith("loss_"))
+        (0.5, ['loss_actor', 'loss_discriminator'])
+    """
+    d = dwbc_probability(logit)
+    d_expert, d_unlabeled = d[:n_expert], d[n_expert:]
+    loss_discriminator = dwbc_discriminator_loss(d_expert, d_unlabeled, eta)
+    with torch.no_grad():
+        w_expert = dwbc_expert_weight(d_expert, alpha, eta, offset)
+        w_unlabeled = dwbc_unlabeled_weight(d_unlabeled, offset)
+    lp_expert, lp_unlabeled = log_prob[:n_expert], log_prob[n_expert:]
+    loss_actor = weighted_nll(lp_expert, w_expert).mean() + weighted_nll(lp_unlabeled, w_unlabeled).mean()
+    return {
+        "loss_discriminator": loss_discriminator,
+        "loss_actor": loss_actor,
+        "d_expert": d_expert.detach().mean(),
+        "d_unlabeled": d_unlabeled.detach().mean(),
+        "unlabeled_kept": (d_unlabeled.detach() >= D_CUT).float().mean(),
+        "expert_weight_mean": w_expert.mean(),
+        "unlabeled_weight_mean": w_unlabeled.mean(),
+        "log_prob_expert": lp_expert.detach().mean(),
+        "log_prob_unlabeled": lp_unlabeled.detach().mean(),
+    }
+
+
 class DWBCLoss(LossModule):
     r"""DWBC (Xu et al., 2022): a discriminator and a discriminator-weighted BC policy, trained jointly.
 
@@ -277,29 +310,7 @@ class DWBCLoss(LossModule):
         disc_in.set(keys.log_prob_input, log_prob_feature(log_prob, action_dim).unsqueeze(-1))
         with self.discriminator_network_params.to_module(self.discriminator_network):
             logit = self.discriminator_network(disc_in).get(self.discriminator_network.out_keys[0])
-        d = dwbc_probability(logit.reshape(-1))
-        d_expert, d_unlabeled = d[:n_expert], d[n_expert:]
-        loss_discriminator = dwbc_discriminator_loss(d_expert, d_unlabeled, self.eta)
-
-        with torch.no_grad():
-            w_expert = dwbc_expert_weight(d_expert, self.alpha, self.eta, self.offset)
-            w_unlabeled = dwbc_unlabeled_weight(d_unlabeled, self.offset)
-        lp_expert, lp_unlabeled = log_prob[:n_expert], log_prob[n_expert:]
-        loss_actor = weighted_nll(lp_expert, w_expert).mean() + weighted_nll(lp_unlabeled, w_unlabeled).mean()
-
-        out = TensorDict(
-            {
-                "loss_discriminator": loss_discriminator,
-                "loss_actor": loss_actor,
-                "d_expert": d_expert.detach().mean(),
-                "d_unlabeled": d_unlabeled.detach().mean(),
-                "unlabeled_kept": (d_unlabeled.detach() >= D_CUT).float().mean(),
-                "expert_weight_mean": w_expert.mean(),
-                "unlabeled_weight_mean": w_unlabeled.mean(),
-                "log_prob_expert": lp_expert.detach().mean(),
-                "log_prob_unlabeled": lp_unlabeled.detach().mean(),
-            },
-            [],
-        )
+        outputs = dwbc_outputs(log_prob, logit.reshape(-1), n_expert, self.alpha, self.eta, self.offset)
+        out = TensorDict(outputs, [])
         self._clear_weakrefs(tensordict, out, "actor_network_params", "discriminator_network_params")
         return out

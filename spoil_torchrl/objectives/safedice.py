@@ -252,6 +252,31 @@ class SafeDICELoss(StateValues, LossModule):
     def in_keys(self) -> list[NestedKey]:
         return self._role_in_keys(self.tensor_keys.unlabeled, self.tensor_keys.logit)
 
+    def reward(self, logit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(probability, reward)`` of the unlabeled transitions from the D_N-vs-D_U discriminator's logit:
+        :func:`safedice_reward`, standardised with ``reward_mean`` / ``reward_std``."""
+        probability = torch.sigmoid(logit)
+        return probability, (safedice_reward(probability, self.alpha) - self.reward_mean) / self.reward_std
+
+    def diagnostics(
+        self, init_nu: torch.Tensor, advantage: torch.Tensor, probability: torch.Tensor, reward: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """The detached diagnostics output beside ``loss_nu`` (see the class docstring)."""
+        with torch.no_grad():
+            log_w = safedice_log_weight(advantage.detach())
+            weights = self_normalized_weights(log_w)
+            dtype = advantage.dtype
+            return {
+                "alpha": torch.tensor(self.alpha, dtype=dtype, device=advantage.device),
+                "reward_mean": reward.mean(),
+                "clipped_fraction": (probability > 1.0 / (1.0 + self.alpha)).to(dtype).mean(),
+                "log_weight_mean": log_mean_exp(log_w),
+                "weight_max": weights.max(),
+                "effective_sample_size": effective_sample_size(weights),
+                "nu_init": init_nu.detach().mean(),
+                "advantage_mean": advantage.detach().mean(),
+            }
+
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Compute ``loss_nu`` and write the weights into ``tensordict[unlabeled]``."""
@@ -262,8 +287,8 @@ class SafeDICELoss(StateValues, LossModule):
         n = batch_shape.numel()
 
         init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
-        probability = torch.sigmoid(unlabeled.get(keys.logit).reshape(n).detach().to(nu.dtype))
-        reward = (safedice_reward(probability, self.alpha) - self.reward_mean) / self.reward_std
+        logit = unlabeled.get(keys.logit).reshape(n).detach().to(nu.dtype)
+        probability, reward = self.reward(logit)
         advantage = dice_advantage(reward, nu, bellman_backup(next_nu, terminated, self.gamma))
         loss_nu = safedice_dual(init_nu, advantage, self.gamma)
         if self.gradient_penalty > 0:
@@ -271,23 +296,11 @@ class SafeDICELoss(StateValues, LossModule):
             loss_nu = loss_nu + self.gradient_penalty * penalty
 
         with torch.no_grad():
-            log_w = safedice_log_weight(advantage)
-            weights = self_normalized_weights(log_w)
+            weights = self_normalized_weights(safedice_log_weight(advantage))
             unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
             unlabeled.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
             out = TensorDict(
-                {
-                    "loss_nu": loss_nu,
-                    "alpha": torch.tensor(self.alpha, dtype=nu.dtype, device=nu.device),
-                    "reward_mean": reward.mean(),
-                    "clipped_fraction": (probability > 1.0 / (1.0 + self.alpha)).to(nu.dtype).mean(),
-                    "log_weight_mean": log_mean_exp(log_w),
-                    "weight_max": weights.max(),
-                    "effective_sample_size": effective_sample_size(weights),
-                    "nu_init": init_nu.mean(),
-                    "advantage_mean": advantage.mean(),
-                },
-                [],
+                {"loss_nu": loss_nu, **self.diagnostics(init_nu, advantage, probability, reward)}, []
             )
         self._clear_weakrefs(tensordict, out, "nu_network_params")
         return out

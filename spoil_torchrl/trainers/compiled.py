@@ -12,24 +12,27 @@ optimisers, so parameters, optimiser state, schedules, checkpoints and resuming 
 
 What differs from the eager step, and why the numbers agree only to float tolerance:
 
-* nu is evaluated on the penalty's points (whose first rows are the current states, see
-  :func:`~spoil_torchrl.objectives.functional.penalty_points`) once, for both the dual and the penalty, instead
-  of on the current states a second time: the same values, one forward pass of the batch fewer;
+* a DICE dual's state network (nu, COptiDICE's chi) is evaluated on the penalty's points (whose first rows are
+  the current states, see :func:`~spoil_torchrl.objectives.functional.penalty_points`) once, for both the dual
+  and the penalty, instead of on the current states a second time: the same values, one forward pass of the
+  batch fewer;
 * the compiler fuses and reorders float operations.
 
 The random numbers (the penalty's interpolation points) are drawn outside the graph, in the eager step's order,
 so a compiled run consumes the same random stream as an eager one; a compiled run is as deterministic as an
 eager one.
 
-A loss gets a compiled form by a class registered in ``COMPILED_FORMS`` (:mod:`~spoil_torchrl.trainers.compiled_forms`;
-see CONTRIBUTING.md, "How to add a loss").
-A stepper with a loss that has none, a network the plain-tensor path cannot read, or a step that fails to
-compile trains eagerly, said once in the log.
+Every loss of the package has a compiled form, registered in ``COMPILED_FORMS``
+(:mod:`~spoil_torchrl.trainers.compiled_forms`; CONTRIBUTING.md, "How to add a loss"). A stepper with a loss
+that has none, a network the plain-tensor path cannot read, or a step that fails to compile trains eagerly,
+said once in the log.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
+import types
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -60,6 +63,41 @@ def update_gradients(forms: Mapping[str, Any]) -> Callable:
         return total, outputs
 
     return grad_and_value(total_loss, has_aux=True)
+
+
+_STEPPERS = itertools.count()
+
+
+def _with_own_code(fn: Callable, name: str) -> Callable:
+    """``fn`` called through a function whose code object is its own.
+
+    Dynamo keeps its compiled graphs per code object and recompiles at most ``recompile_limit`` (8) times per
+    code object before it gives up; every stepper's update would otherwise enter through the same code object
+    (torch.func's ``grad_and_value`` wrapper), so the ninth stepper of a process would no longer compile. With a
+    code object of its own each stepper has its own cache, freed with the stepper.
+
+    Examples:
+        >>> f = _with_own_code(abs, "absolute")
+        >>> f(-2), f.__code__ is _with_own_code(abs, "absolute").__code__
+        (2, False)
+    """
+
+    def call(*args):
+        return fn(*args)
+
+    code = call.__code__.replace(co_name=name, co_qualname=name)
+    return types.FunctionType(code, call.__globals__, name, None, call.__closure__)
+
+
+def _rng_state(device: torch.device) -> tuple:
+    """The generators a step may draw from: the CPU's, and the GPU's when the parameters live on one."""
+    return torch.get_rng_state(), torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+
+
+def _set_rng_state(device: torch.device, state: tuple) -> None:
+    torch.set_rng_state(state[0])
+    if state[1] is not None:
+        torch.cuda.set_rng_state(state[1], device)
 
 
 class CompiledStepper(MultiLossStepper):
@@ -115,18 +153,19 @@ class CompiledStepper(MultiLossStepper):
 
     def _build(self, device: torch.device):
         mode = self.mode or ("reduce-overhead" if device.type == "cuda" else None)
-        return torch.compile(update_gradients(self._forms), mode=mode, fullgraph=True, dynamic=False)
+        update = _with_own_code(update_gradients(self._forms), f"compiled_update_{next(_STEPPERS)}")
+        return torch.compile(update, mode=mode, fullgraph=True, dynamic=False)
 
     def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
         if self._forms is None:
             return super().step(trainer, sub_batch)
-        rng = torch.get_rng_state()
         parameters = self._parameters()
+        device = next(p for ps in parameters.values() for p in ps.values()).device
+        rng = _rng_state(device)
         inputs = {name: form.inputs(sub_batch) for name, form in self._forms.items()}
         detached = {name: {k: p.detach() for k, p in ps.items()} for name, ps in parameters.items()}
         try:
             if self._fn is None:
-                device = next(p for ps in parameters.values() for p in ps.values()).device
                 self._fn = self._build(device)
             grads, (_, outputs) = self._fn(detached, inputs)
         except Exception as err:
@@ -138,7 +177,7 @@ class CompiledStepper(MultiLossStepper):
                 str(err).strip().splitlines()[0] if str(err).strip() else "",
             )
             self._forms, self._fn = None, None
-            torch.set_rng_state(rng)
+            _set_rng_state(device, rng)
             return super().step(trainer, sub_batch)
         self.compiled = True
         for optimizer in self.optimizers:

@@ -10,13 +10,15 @@ import torch
 
 from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
 from spoil_torchrl.objectives import (
+    COptiDICELoss,
     DemoDICELoss,
+    DWBCLoss,
     PUDiscriminatorLoss,
     SafeDICELoss,
     SpoilDICELoss,
     WeightedBCLoss,
 )
-from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
+from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper, StepEvery
 from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
 
 STEPS = 4
@@ -31,7 +33,7 @@ def _sgd(params, lr: float = 1e-2) -> torch.optim.Optimizer:
 
 
 def _spoildice(distribution: str, penalty: float):
-    """SpoilDICE + weighted BC on its weights, three Adams: the same initial weights on every call."""
+    """SpoilDICE + weighted BC on its weights: the same initial weights on every call."""
     torch.manual_seed(3)
     dice = SpoilDICELoss(make_value_network(OBS_DIM, hidden_cells=(32, 32)), gradient_penalty=penalty)
     actor = WeightedBCLoss(
@@ -78,6 +80,50 @@ def _discriminators(class_prior: float | None = None):
     return losses, [_sgd(loss.parameters()) for loss in losses.values()]
 
 
+def _safedice():
+    """SafeDICE's main stage (its logit read from an entry dual_batch has), weighted BC on D_U."""
+    torch.manual_seed(3)
+    dice = SafeDICELoss(make_value_network(OBS_DIM, hidden_cells=(32, 32)), alpha=0.5, gradient_penalty=10.0)
+    dice.set_keys(logit="log_ratio_performant")
+    actor = WeightedBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="unlabeled", weight="dice_weight"
+    )
+    optimizers = [_sgd(dice.nu_network_params.values(True, True)), _sgd(actor.parameters())]
+    return {"dice": dice, "actor": actor}, optimizers
+
+
+def _dwbc():
+    """DWBC: the policy and D(s, a, log pi) trained jointly, the discriminator's optimiser every 2nd step."""
+    torch.manual_seed(3)
+    loss = DWBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)),
+        make_discriminator(OBS_DIM, ACT_DIM, hidden_cells=(32,), extra_inputs={"policy_log_prob": 1}),
+        alpha=7.5,
+        eta=0.5,
+    )
+    optimizers = [
+        _sgd(loss.actor_network_params.values(True, True)),
+        StepEvery(_sgd(loss.discriminator_network_params.values(True, True)), 2),
+    ]
+    return {"dwbc": loss}, optimizers
+
+
+def _coptidice(cost_ub_epsilon: float):
+    """COptiDICE's main stage (nu, chi, tau, lambda; chi off with cost_ub_epsilon=0), weighted BC on D_U."""
+    torch.manual_seed(3)
+    dice = COptiDICELoss(
+        make_value_network(OBS_DIM, hidden_cells=(32,)),
+        make_value_network(OBS_DIM, hidden_cells=(32,)),
+        cost_limit=0.2,
+        cost_ub_epsilon=cost_ub_epsilon,
+        gradient_penalty=10.0,
+    )
+    actor = WeightedBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="unlabeled", weight="dice_weight"
+    )
+    return {"dice": dice, "actor": actor}, [_sgd(dice.parameters()), _sgd(actor.parameters())]
+
+
 def _filtered_bc():
     """Weighted BC with its weight read from the batch (filtered BC's ``safe_support`` on D_P)."""
     torch.manual_seed(3)
@@ -91,12 +137,7 @@ def _run(stepper, batches):
     """``STEPS`` steps from a fixed random stream; the outputs, the parameters and the stream's state after."""
     torch.manual_seed(11)
     outputs = [stepper.step(None, batch.clone()) for batch in batches]
-    params = {
-        f"{name}.{key}": p.detach().clone()
-        for name, loss in stepper.losses.items()
-        for key, p in loss.named_parameters()
-    }
-    return outputs, params, torch.get_rng_state()
+    return outputs, _parameters(stepper.losses), torch.get_rng_state()
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +153,11 @@ def batches():
         pytest.param(lambda: _spoildice("tanh_normal", 10.0), id="spoildice-tanh-penalty10"),
         pytest.param(lambda: _spoildice("normal", 0.0), id="spoildice-no-penalty"),
         pytest.param(_demodice_s, id="demodice-s"),
+        pytest.param(_safedice, id="safedice"),
+        pytest.param(lambda: _coptidice(0.01), id="coptidice"),
+        pytest.param(lambda: _coptidice(0.0), id="coptidice-no-chi"),
         pytest.param(_filtered_bc, id="filtered-bc"),
+        pytest.param(_dwbc, id="dwbc"),
         pytest.param(_discriminators, id="discriminators"),
         pytest.param(lambda: _discriminators(class_prior=0.3), id="discriminators-nnpu"),
     ],
@@ -129,19 +174,20 @@ def test_compiled_steps_match_eager_steps(build, batches):
             torch.testing.assert_close(
                 b[key], a[key], rtol=1e-4, atol=1e-5, msg=lambda m, key=key: f"{key}: {m}"
             )
-    changed = False
+    initial = _parameters(build()[0])
     for key, value in eager_params.items():
         torch.testing.assert_close(
             params[key], value, rtol=1e-4, atol=1e-5, msg=lambda m, key=key: f"{key}: {m}"
         )
-        changed |= not torch.equal(value, _initial(build, key))
-    assert changed, "no parameter moved"
+    assert any(not torch.equal(value, initial[key]) for key, value in eager_params.items()), "nothing moved"
 
 
-def _initial(build, key: str) -> torch.Tensor:
-    losses, _ = build()
-    name, inner = key.split(".", 1)
-    return dict(losses[name].named_parameters())[inner].detach()
+def _parameters(losses) -> dict[str, torch.Tensor]:
+    return {
+        f"{name}.{key}": p.detach().clone()
+        for name, loss in losses.items()
+        for key, p in loss.named_parameters()
+    }
 
 
 def _adam(losses, optimizers):
@@ -157,15 +203,17 @@ def test_compiled_steps_are_deterministic(batches):
 
 
 def test_a_loss_without_compiled_form_runs_eagerly_and_says_so(caplog, batches):
+    class UsersOwnBC(WeightedBCLoss):
+        """A user's subclass: the compiled forms are registered by exact class, so it has none."""
+
     def build():
         torch.manual_seed(3)
-        dice = SafeDICELoss(make_value_network(OBS_DIM, hidden_cells=(16,)), alpha=0.5)
-        dice.set_keys(logit="log_ratio_performant")  # a logit entry dual_batch has
-        return {"dice": dice}, [torch.optim.Adam(dice.parameters(), lr=1e-3)]
+        loss = UsersOwnBC(make_actor(OBS_DIM, ACT_DIM, hidden_cells=(16,)), role="performant")
+        return {"actor": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)]
 
     with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
         stepper = CompiledStepper(*build())
-    assert "SafeDICELoss has no compiled form; the update step runs eagerly" in caplog.text
+    assert "UsersOwnBC has no compiled form; the update step runs eagerly" in caplog.text
     _, eager_params, _ = _run(MultiLossStepper(*build()), batches)
     _, params, _ = _run(stepper, batches)
     assert not stepper.compiled
@@ -198,3 +246,16 @@ def test_compiled_stepper_keeps_the_eager_state_dict():
     compiled = CompiledStepper.from_stepper(eager)
     assert compiled.losses == eager.losses and compiled.optimizers == eager.optimizers
     assert compiled.state_dict().keys() == eager.state_dict().keys()
+
+
+def test_more_steppers_than_dynamos_recompile_limit_all_compile():
+    """Dynamo recompiles one code object at most 8 times; every stepper has its own, so a process (a notebook,
+    this test suite) can build any number."""
+    steppers = []
+    for i in range(10):  # named apart: no two steppers can share a compiled graph
+        loss = _filtered_bc()[0]["actor"]
+        steppers.append(CompiledStepper({f"actor_{i}": loss}, [_sgd(loss.parameters())]))
+    batch = dual_batch()
+    for stepper in steppers:
+        stepper.step(None, batch.clone())
+    assert all(stepper.compiled for stepper in steppers)
