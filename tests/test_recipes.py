@@ -136,11 +136,8 @@ def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
 
 
 def test_dsrl_recipe_safedice_gets_its_nonpreferred_role(tmp_path, tiny_pc1_dataset):
-    proc, results = _dsrl_recipe(
-        tmp_path, tiny_pc1_dataset, "algo=safedice", "logger=none", "train.compile=true"
-    )
+    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=safedice", "logger=none")
     assert results["algo"] == "safedice" and results["status"] == "finished"
-    assert results["update_step"] == "compiled" and "runs eagerly" not in proc.stdout
     assert (
         results["data"]["nonpreferred"]["safe_share"] == 0.0
         and results["data"]["nonpreferred"]["episodes"] > 0
@@ -149,11 +146,8 @@ def test_dsrl_recipe_safedice_gets_its_nonpreferred_role(tmp_path, tiny_pc1_data
 
 
 def test_dsrl_recipe_dwbc_s(tmp_path, tiny_pc1_dataset):
-    proc, results = _dsrl_recipe(
-        tmp_path, tiny_pc1_dataset, "algo=dwbc_s", "logger=none", "train.compile=true"
-    )
+    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=dwbc_s", "logger=none")
     assert results["algo"] == "dwbc_s" and results["status"] == "finished"
-    assert results["update_step"] == "compiled" and "runs eagerly" not in proc.stdout
     assert [e["step"] for e in results["evaluations"]] == [100, 200]
     assert "unlabeled: safe" in (tmp_path / "config.yaml").read_text()
 
