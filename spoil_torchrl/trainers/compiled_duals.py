@@ -90,7 +90,7 @@ def state_terms(
     n, n0 = x["current"].shape[0], x["init"].shape[0]
     init_v, next_v = values(torch.cat([x["init"], x["following"]])).split([n0, n])
     if points is None:
-        return init_v, values(x["current"]), next_v, torch.zeros(())
+        return init_v, values(x["current"]), next_v, init_v.new_zeros(())
     grads, on_points = grad(values_with_sum, has_aux=True)(points)
     norms = grads.reshape(grads.shape[0], -1).norm(dim=-1)
     return init_v, on_points[:n], next_v, coefficient * gradient_penalty(norms, target=None)

@@ -165,7 +165,7 @@ class CompiledDiscriminator:
         outputs = discriminator_outputs(
             both[:n_pos], both[n_pos:], self.loss.class_prior, self.loss.reduction
         )
-        penalty = torch.zeros(())
+        penalty = both.new_zeros(())
         if "points.0" in x:
             grads = grad(lambda *xs: logits(*xs).sum(), argnums=tuple(inputs))(
                 *(x[f"points.{i}"] for i in inputs)
