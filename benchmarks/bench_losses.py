@@ -29,7 +29,7 @@ from torch import nn
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
-from spoil_torchrl.trainers.compiled import update_gradients
+from spoil_torchrl.trainers.compiled import detached, set_gradients, update_gradients
 from spoil_torchrl.trainers.compiled_forms import compiled_forms
 
 
@@ -113,11 +113,8 @@ class VectorizedSeeds:
             name: {key: torch.stack([x[name][key] for x in per_seed]) for key in per_seed[0][name]}
             for name in self.forms
         }
-        detached = {name: {k: p.detach() for k, p in ps.items()} for name, ps in self.params.items()}
-        grads, _ = self.update(detached, inputs)
-        for name, ps in self.params.items():
-            for key, p in ps.items():
-                p.grad = grads[name][key]
+        grads, _ = self.update(detached(self.params), inputs)
+        set_gradients(self.params, grads)
         for optim in self.optims:
             optim.step()
 
@@ -184,8 +181,8 @@ def step_flops(reference: ReferenceStep, batch: TensorDict) -> int:
 
 def compiled_form_flops(compiled: CompiledLibraryStep, batch: TensorDict) -> int:
     """FLOPs of the compiled step's update (its pure function run eagerly): nu runs once fewer on the batch."""
-    forms = compiled.stepper._forms
-    params = {name: {k: p.detach() for k, p in form.parameters().items()} for name, form in forms.items()}
+    forms = compiled.stepper.forms
+    params = detached({name: form.parameters() for name, form in forms.items()})
     inputs = {name: form.inputs(batch.clone()) for name, form in forms.items()}
     return count_flops(lambda: update_gradients(forms)(params, inputs))
 

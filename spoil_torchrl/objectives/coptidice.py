@@ -425,8 +425,9 @@ class COptiDICELoss(StateValues, LossModule):
         terminated: torch.Tensor,
         lagrange: torch.Tensor,
         tau: torch.Tensor,
-    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        """The four losses and the diagnostics (the output keys) and the advantage, from nu's (and chi's) values
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+        """The four losses and the diagnostics (the output keys), the advantage and the self-normalised weights
+        of the policy extraction, from nu's (and chi's) values
         at the initial, current and next states and their weighted gradient penalties (``None``: off; chi's
         values ``None`` when ``cost_ub_epsilon`` is 0). :meth:`forward` and the compiled update step both call
         it."""
@@ -478,7 +479,7 @@ class COptiDICELoss(StateValues, LossModule):
                 "nu_init": init_nu.detach().mean(),
                 "advantage_mean": advantage.detach().mean(),
             }
-        return outputs, advantage
+        return outputs, advantage, normalized
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -497,7 +498,7 @@ class COptiDICELoss(StateValues, LossModule):
             chi_penalty = self._value_penalty(self._chi, init, current, following)
         reward = data.get(keys.reward).reshape(n).detach().to(nu.dtype)
         cost = data.get(keys.cost).reshape(n).detach().to(nu.dtype)
-        outputs, advantage = self.losses(
+        outputs, advantage, normalized = self.losses(
             (init_nu, nu, next_nu),
             nu_penalty,
             chi_values,
@@ -509,7 +510,6 @@ class COptiDICELoss(StateValues, LossModule):
             self.tau,
         )
         with torch.no_grad():
-            normalized = self_normalized_weights(coptidice_log_weight(advantage, self.alpha))
             data.set(keys.weight, normalized.reshape(*batch_shape, 1))
             data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
         out = TensorDict(outputs, [])

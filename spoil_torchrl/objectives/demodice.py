@@ -13,10 +13,10 @@ from torchrl.objectives import LossModule
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
     dice_advantage,
-    effective_sample_size,
     log_mean_exp,
     nu_gradient_penalty,
     self_normalized_weights,
+    weight_diagnostics,
 )
 from spoil_torchrl.objectives.keys import get_role
 from spoil_torchrl.objectives.nu_values import StateValues
@@ -52,22 +52,24 @@ def demodice_log_weight(advantage: torch.Tensor, alpha: float) -> torch.Tensor:
 
 
 def demodice_diagnostics(
-    init_nu: torch.Tensor, advantage: torch.Tensor, reward: torch.Tensor, alpha: float
+    init_nu: torch.Tensor,
+    advantage: torch.Tensor,
+    log_weights: torch.Tensor,
+    weights: torch.Tensor,
+    reward: torch.Tensor,
 ) -> dict[str, torch.Tensor]:
-    """The detached diagnostics :class:`DemoDICELoss` outputs beside ``loss_nu`` (see its docstring).
+    """The detached diagnostics :class:`DemoDICELoss` outputs beside ``loss_nu`` (see its docstring), from nu,
+    the advantage, its log weights (:func:`demodice_log_weight`) and their self-normalised weights.
 
     Examples:
-        >>> out = demodice_diagnostics(torch.zeros(2), torch.zeros(2), torch.ones(2), alpha=0.1)
+        >>> z, one = torch.zeros(2), torch.ones(2)
+        >>> out = demodice_diagnostics(z, z, z - 1, one, one)
         >>> out["effective_sample_size"].item(), out["reward_mean"].item()
         (1.0, 1.0)
     """
     with torch.no_grad():
-        log_w = demodice_log_weight(advantage.detach(), alpha)
-        weights = self_normalized_weights(log_w)
         return {
-            "log_weight_mean": log_mean_exp(log_w),
-            "weight_max": weights.max(),
-            "effective_sample_size": effective_sample_size(weights),
+            **weight_diagnostics(log_weights, weights),
             "reward_mean": reward.mean(),
             "nu_init": init_nu.detach().mean(),
             "advantage_mean": advantage.detach().mean(),
@@ -246,11 +248,11 @@ class DemoDICELoss(StateValues, LossModule):
             loss_nu = loss_nu + self.gradient_penalty * penalty
 
         with torch.no_grad():
-            weights = self_normalized_weights(demodice_log_weight(advantage, self.alpha))
+            log_weights = demodice_log_weight(advantage, self.alpha)
+            weights = self_normalized_weights(log_weights)
             data.set(keys.weight, weights.reshape(*batch_shape, 1))
             data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
-            out = TensorDict(
-                {"loss_nu": loss_nu, **demodice_diagnostics(init_nu, advantage, reward, self.alpha)}, []
-            )
+            diagnostics = demodice_diagnostics(init_nu, advantage, log_weights, weights, reward)
+            out = TensorDict({"loss_nu": loss_nu, **diagnostics}, [])
         self._clear_weakrefs(tensordict, out, "nu_network_params")
         return out

@@ -129,6 +129,22 @@ def effective_sample_size(weights: torch.Tensor) -> torch.Tensor:
     return weights.sum().pow(2) / weights.pow(2).sum() / weights.numel()
 
 
+def weight_diagnostics(log_weights: torch.Tensor, weights: torch.Tensor) -> dict[str, torch.Tensor]:
+    """What every KL-regularised DICE loss reports of its weights: ``log_weight_mean`` (``log E[w*]`` of the
+    closed-form log weights), ``weight_max`` and ``effective_sample_size`` (of the self-normalised weights).
+
+    Examples:
+        >>> log_w = torch.zeros(4)
+        >>> {k: round(v.item(), 4) for k, v in weight_diagnostics(log_w, self_normalized_weights(log_w)).items()}
+        {'log_weight_mean': 0.0, 'weight_max': 1.0, 'effective_sample_size': 1.0}
+    """
+    return {
+        "log_weight_mean": log_mean_exp(log_weights),
+        "weight_max": weights.max(),
+        "effective_sample_size": effective_sample_size(weights),
+    }
+
+
 def bellman_backup(next_nu: torch.Tensor, terminated: torch.Tensor, gamma: float) -> torch.Tensor:
     """One-sample estimate of :math:`\\gamma (T\\nu)(s, a) = \\gamma\\, \\nu(s') (1 - \\text{terminated})`.
 

@@ -15,10 +15,10 @@ from torchrl.objectives import LossModule
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
     dice_advantage,
-    effective_sample_size,
     log_mean_exp,
     nu_gradient_penalty,
     self_normalized_weights,
+    weight_diagnostics,
 )
 from spoil_torchrl.objectives.keys import get_role
 from spoil_torchrl.objectives.nu_values import StateValues
@@ -259,20 +259,23 @@ class SafeDICELoss(StateValues, LossModule):
         return probability, (safedice_reward(probability, self.alpha) - self.reward_mean) / self.reward_std
 
     def diagnostics(
-        self, init_nu: torch.Tensor, advantage: torch.Tensor, probability: torch.Tensor, reward: torch.Tensor
+        self,
+        init_nu: torch.Tensor,
+        advantage: torch.Tensor,
+        log_weights: torch.Tensor,
+        weights: torch.Tensor,
+        probability: torch.Tensor,
+        reward: torch.Tensor,
     ) -> dict[str, torch.Tensor]:
-        """The detached diagnostics output beside ``loss_nu`` (see the class docstring)."""
+        """The detached diagnostics output beside ``loss_nu`` (see the class docstring), from nu, the advantage,
+        its log weights (:func:`safedice_log_weight`) and their self-normalised weights, and the reward."""
         with torch.no_grad():
-            log_w = safedice_log_weight(advantage.detach())
-            weights = self_normalized_weights(log_w)
             dtype = advantage.dtype
             return {
                 "alpha": torch.tensor(self.alpha, dtype=dtype, device=advantage.device),
                 "reward_mean": reward.mean(),
                 "clipped_fraction": (probability > 1.0 / (1.0 + self.alpha)).to(dtype).mean(),
-                "log_weight_mean": log_mean_exp(log_w),
-                "weight_max": weights.max(),
-                "effective_sample_size": effective_sample_size(weights),
+                **weight_diagnostics(log_weights, weights),
                 "nu_init": init_nu.detach().mean(),
                 "advantage_mean": advantage.detach().mean(),
             }
@@ -296,11 +299,11 @@ class SafeDICELoss(StateValues, LossModule):
             loss_nu = loss_nu + self.gradient_penalty * penalty
 
         with torch.no_grad():
-            weights = self_normalized_weights(safedice_log_weight(advantage))
+            log_weights = safedice_log_weight(advantage)
+            weights = self_normalized_weights(log_weights)
             unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
             unlabeled.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
-            out = TensorDict(
-                {"loss_nu": loss_nu, **self.diagnostics(init_nu, advantage, probability, reward)}, []
-            )
+            diagnostics = self.diagnostics(init_nu, advantage, log_weights, weights, probability, reward)
+            out = TensorDict({"loss_nu": loss_nu, **diagnostics}, [])
         self._clear_weakrefs(tensordict, out, "nu_network_params")
         return out

@@ -13,10 +13,10 @@ from torchrl.objectives import LossModule
 
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
-    effective_sample_size,
     log_mean_exp,
     nu_gradient_penalty,
     self_normalized_weights,
+    weight_diagnostics,
 )
 from spoil_torchrl.objectives.keys import get_role, role_key
 from spoil_torchrl.objectives.nu_values import StateValues
@@ -99,23 +99,26 @@ def spoildice_losses(
 
 
 def spoildice_diagnostics(
-    init_nu: torch.Tensor, advantage: torch.Tensor, support: torch.Tensor, lagrange: torch.Tensor
+    init_nu: torch.Tensor,
+    advantage: torch.Tensor,
+    log_weights: torch.Tensor,
+    weights: torch.Tensor,
+    support: torch.Tensor,
+    lagrange: torch.Tensor,
 ) -> dict[str, torch.Tensor]:
-    """The detached diagnostics :class:`SpoilDICELoss` outputs beside its losses (see its docstring).
+    """The detached diagnostics :class:`SpoilDICELoss` outputs beside its losses (see its docstring), from nu,
+    the advantage, its closed-form log weights (Eq. 11) and their self-normalised weights.
 
     Examples:
-        >>> out = spoildice_diagnostics(torch.zeros(2), torch.zeros(2), torch.ones(2), torch.tensor(0.5))
+        >>> z, one = torch.zeros(2), torch.ones(2)
+        >>> out = spoildice_diagnostics(z, z, z - 1, one, one, torch.tensor(0.5))
         >>> out["support_weight"].item(), out["effective_sample_size"].item()
         (1.0, 1.0)
     """
     with torch.no_grad():
-        log_w = closed_form_log_weight(advantage.detach())
-        weights = self_normalized_weights(log_w)
         return {
             "lagrange": lagrange.detach().clone(),
-            "log_weight_mean": log_mean_exp(log_w),
-            "weight_max": weights.max(),
-            "effective_sample_size": effective_sample_size(weights),
+            **weight_diagnostics(log_weights, weights),
             "support_fraction": support.mean(),
             "support_weight": (weights * support).mean(),
             "nu_init": init_nu.detach().mean(),
@@ -294,14 +297,15 @@ class SpoilDICELoss(StateValues, LossModule):
         )
         loss_nu = loss_nu + self._penalty(init, current, following)
         with torch.no_grad():
-            weights = self_normalized_weights(closed_form_log_weight(adv_nu))
+            log_weights = closed_form_log_weight(adv_nu)
+            weights = self_normalized_weights(log_weights)
             unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
             unlabeled.set(keys.advantage, adv_nu.detach().reshape(*batch_shape, 1))
             out = TensorDict(
                 {
                     "loss_nu": loss_nu,
                     "loss_lambda": loss_lambda,
-                    **spoildice_diagnostics(init_nu, adv_nu, support, self.lagrange),
+                    **spoildice_diagnostics(init_nu, adv_nu, log_weights, weights, support, self.lagrange),
                 },
                 [],
             )

@@ -65,6 +65,18 @@ def update_gradients(forms: Mapping[str, Any]) -> Callable:
     return grad_and_value(total_loss, has_aux=True)
 
 
+def detached(parameters: Mapping[str, Mapping[str, torch.Tensor]]) -> dict[str, dict[str, torch.Tensor]]:
+    """``parameters`` (loss name -> name -> parameter) detached: the arguments of :func:`update_gradients`."""
+    return {name: {k: p.detach() for k, p in ps.items()} for name, ps in parameters.items()}
+
+
+def set_gradients(parameters: Mapping[str, Mapping[str, torch.Tensor]], grads: Mapping) -> None:
+    """Give every parameter its gradient from :func:`update_gradients`' result (the same structure)."""
+    for name, ps in parameters.items():
+        for key, p in ps.items():
+            p.grad = grads[name][key]
+
+
 _STEPPERS = itertools.count()
 
 
@@ -148,6 +160,11 @@ class CompiledStepper(MultiLossStepper):
         """The compiled version of an eager stepper (same losses, optimisers and schedules)."""
         return cls(stepper.losses, stepper.optimizers, stepper.schedulers, **kwargs)
 
+    @property
+    def forms(self) -> dict[str, Any] | None:
+        """The losses' compiled forms (``None`` once the stepper runs eagerly)."""
+        return self._forms
+
     def _parameters(self) -> dict[str, dict[str, nn.Parameter]]:
         return {name: form.parameters() for name, form in self._forms.items()}
 
@@ -163,11 +180,10 @@ class CompiledStepper(MultiLossStepper):
         device = next(p for ps in parameters.values() for p in ps.values()).device
         rng = _rng_state(device)
         inputs = {name: form.inputs(sub_batch) for name, form in self._forms.items()}
-        detached = {name: {k: p.detach() for k, p in ps.items()} for name, ps in parameters.items()}
         try:
             if self._fn is None:
                 self._fn = self._build(device)
-            grads, (_, outputs) = self._fn(detached, inputs)
+            grads, (_, outputs) = self._fn(detached(parameters), inputs)
         except Exception as err:
             if self.compiled:
                 raise
@@ -180,13 +196,5 @@ class CompiledStepper(MultiLossStepper):
             _set_rng_state(device, rng)
             return super().step(trainer, sub_batch)
         self.compiled = True
-        for optimizer in self.optimizers:
-            optimizer.zero_grad(set_to_none=True)
-        for name, ps in parameters.items():
-            for key, p in ps.items():
-                p.grad = grads[name][key]
-        for optimizer in self.optimizers:
-            optimizer.step()
-        for scheduler in self.schedulers:
-            scheduler.step()
+        self._apply_gradients(lambda: set_gradients(parameters, grads))
         return scalar_outputs(outputs)

@@ -10,7 +10,7 @@ from torch import nn
 from torch.func import grad
 from torchrl.objectives import LossModule
 
-from spoil_torchrl.objectives.coptidice import COptiDICELoss, coptidice_log_weight, lagrange_of, tau_of
+from spoil_torchrl.objectives.coptidice import COptiDICELoss, lagrange_of, tau_of
 from spoil_torchrl.objectives.demodice import (
     DemoDICELoss,
     demodice_diagnostics,
@@ -42,6 +42,8 @@ class CompiledDual:
     on the initial, current and next states plus the gradient penalty (:meth:`nu_terms`)."""
 
     role: NestedKey
+    #: the inputs holding each penalised state network's points, in the order the LossModule draws them
+    penalised: tuple[str, ...] = ("points",)
 
     def __init__(self, loss: LossModule) -> None:
         self.loss = loss
@@ -53,7 +55,8 @@ class CompiledDual:
         return {f"nu.{k}": v for k, v in self.nu.params.items()}
 
     def inputs(self, batch: TensorDictBase) -> Tensors:
-        """The role's states, ``terminated`` and, when the penalty is on, its points (random, drawn here)."""
+        """The role's states, ``terminated`` and, when the penalty is on, the points of each penalised network
+        (random, drawn here)."""
         t = self.loss._transitions(batch, self.role)
         key = self.nu.in_key
         out = {
@@ -63,7 +66,8 @@ class CompiledDual:
             "terminated": t.terminated,
         }
         if self.loss.gradient_penalty != 0:
-            out["points"] = penalty_points(t.init, t.current, t.following)[key]
+            for name in self.penalised:
+                out[name] = penalty_points(t.init, t.current, t.following)[key]
         return out
 
     def nu_terms(self, params: Tensors, x: Tensors) -> tuple[torch.Tensor, ...]:
@@ -138,10 +142,13 @@ class CompiledSpoilDICE(CompiledDual):
         )
         loss_nu = loss_nu + penalty
         with torch.no_grad():
-            weights = self_normalized_weights(closed_form_log_weight(advantage.detach()))
+            log_weights = closed_form_log_weight(advantage.detach())
+            weights = self_normalized_weights(log_weights)
         produced[next(iter(self.produces))] = weights
         outputs = {"loss_nu": loss_nu, "loss_lambda": loss_lambda}
-        outputs |= spoildice_diagnostics(init_nu, advantage, support, params["lagrange"])
+        outputs |= spoildice_diagnostics(
+            init_nu, advantage, log_weights, weights, support, params["lagrange"]
+        )
         return loss_nu + loss_lambda, outputs
 
 
@@ -166,9 +173,11 @@ class CompiledDemoDICE(CompiledDual):
         advantage = dice_advantage(reward, current_nu, bellman_backup(next_nu, x["terminated"], loss.gamma))
         loss_nu = demodice_dual(init_nu, advantage, loss.alpha, loss.gamma) + penalty
         with torch.no_grad():
-            weights = self_normalized_weights(demodice_log_weight(advantage.detach(), loss.alpha))
+            log_weights = demodice_log_weight(advantage.detach(), loss.alpha)
+            weights = self_normalized_weights(log_weights)
         produced[next(iter(self.produces))] = weights
-        return loss_nu, {"loss_nu": loss_nu, **demodice_diagnostics(init_nu, advantage, reward, loss.alpha)}
+        diagnostics = demodice_diagnostics(init_nu, advantage, log_weights, weights, reward)
+        return loss_nu, {"loss_nu": loss_nu, **diagnostics}
 
 
 class CompiledSafeDICE(CompiledDual):
@@ -193,9 +202,11 @@ class CompiledSafeDICE(CompiledDual):
         advantage = dice_advantage(reward, current_nu, bellman_backup(next_nu, x["terminated"], loss.gamma))
         loss_nu = safedice_dual(init_nu, advantage, loss.gamma) + penalty
         with torch.no_grad():
-            weights = self_normalized_weights(safedice_log_weight(advantage.detach()))
+            log_weights = safedice_log_weight(advantage.detach())
+            weights = self_normalized_weights(log_weights)
         produced[next(iter(self.produces))] = weights
-        return loss_nu, {"loss_nu": loss_nu, **loss.diagnostics(init_nu, advantage, probability, reward)}
+        diagnostics = loss.diagnostics(init_nu, advantage, log_weights, weights, probability, reward)
+        return loss_nu, {"loss_nu": loss_nu, **diagnostics}
 
 
 class CompiledCOptiDICE(CompiledDual):
@@ -207,6 +218,8 @@ class CompiledCOptiDICE(CompiledDual):
         self.role = loss.tensor_keys.unlabeled
         super().__init__(loss)
         self.chi = PlainNetwork(loss.chi_network, loss.chi_network_params, "COptiDICELoss's chi_network")
+        if loss.cost_ub_epsilon > 0:  # chi is trained and penalised after nu
+            self.penalised = ("points", "chi_points")
 
     def parameters(self) -> dict[str, nn.Parameter]:
         return {
@@ -217,11 +230,8 @@ class CompiledCOptiDICE(CompiledDual):
         }
 
     def inputs(self, batch: TensorDictBase) -> Tensors:
-        loss, keys = self.loss, self.loss.tensor_keys
+        keys = self.loss.tensor_keys
         out = super().inputs(batch)
-        if loss.cost_ub_epsilon > 0 and loss.gradient_penalty > 0:
-            t = loss._transitions(batch, self.role)
-            out["chi_points"] = penalty_points(t.init, t.current, t.following)[self.nu.in_key]
         data = get_role(batch, self.role)
         n = data.batch_size.numel()
         return out | {"reward": data.get(keys.reward).reshape(n), "cost": data.get(keys.cost).reshape(n)}
@@ -240,7 +250,7 @@ class CompiledCOptiDICE(CompiledDual):
             )
             chi_penalty = chi_penalty if on else None
         dtype = nu.dtype
-        outputs, advantage = loss.losses(
+        outputs, _, weights = loss.losses(
             (init_nu, nu, next_nu),
             nu_penalty if on else None,
             None if chi_values is None else tuple(chi_values),
@@ -251,9 +261,6 @@ class CompiledCOptiDICE(CompiledDual):
             lagrange_of(params["lagrange_param"]),
             tau_of(params["tau_param"]),
         )
-        with torch.no_grad():
-            produced[next(iter(self.produces))] = self_normalized_weights(
-                coptidice_log_weight(advantage.detach(), loss.alpha)
-            )
+        produced[next(iter(self.produces))] = weights
         total = sum(value for key, value in outputs.items() if key.startswith("loss_"))
         return total, outputs

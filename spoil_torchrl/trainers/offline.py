@@ -215,14 +215,19 @@ class MultiLossStepper(OptimizationStepper):
         total = sum(
             value for out in outputs.values() for key, value in out.items() if key.startswith("loss_")
         )
+        self._apply_gradients(total.backward)
+        return scalar_outputs(outputs)
+
+    def _apply_gradients(self, set_gradients: Callable[[], None]) -> None:
+        """Clear every optimiser's gradients, fill them with ``set_gradients`` (a backward pass, or gradients
+        computed elsewhere), then step the optimisers and the schedules."""
         for optimizer in self.optimizers:
             optimizer.zero_grad(set_to_none=True)
-        total.backward()
+        set_gradients()
         for optimizer in self.optimizers:
             optimizer.step()
         for scheduler in self.schedulers:
             scheduler.step()
-        return scalar_outputs(outputs)
 
     def state_dict(self) -> dict[str, Any]:
         return {
