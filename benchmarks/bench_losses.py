@@ -4,15 +4,17 @@
     python benchmarks/bench_losses.py --steps 500 --batch-size 512 --threads 2 --seeds 5
 
 Prints updates/s, each as a ratio to the plain reference, for: the library's LossModules stepped eagerly
-(``MultiLossStepper``'s step), the library's compiled step (``CompiledStepper``, ``train.compile=true``), K seeds
-vectorised (the compiled step's pure update vmapped over stacked parameters: per seed and in total), a
-hand-written plain-PyTorch reference of the same step (same networks, loss and gradient penalty), and the step's
-FLOP limit on this machine (the step's FLOPs counted with PyTorch's per-operator formulas, over a measured
-matmul rate of the step's own layer shapes): the most any implementation of this step could reach here; also
-for the compiled step's own arithmetic, which runs nu once fewer on the batch. The
-library and the reference are checked to compute the same losses before timing. Timings on shared 2-core
-machines vary by 30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians), are
-the stable numbers.
+(``MultiLossStepper``'s step), the library's compiled step (``CompiledStepper``, ``train.compile=true``), the
+compiled step with float32 products handed to oneDNN (``train.matmul_precision=medium``, the default preset's;
+float32 kernels on this project's CPUs), K seeds vectorised (the compiled step's pure update vmapped over stacked
+parameters, at medium: per seed and in total), a hand-written plain-PyTorch reference of the same step (same
+networks, loss and gradient penalty; with MKL's products, the ratios' base, and at medium), and the step's FLOP
+limit on this machine (the step's FLOPs counted with PyTorch's per-operator formulas, over a measured matmul rate
+of the step's own layer shapes, by MKL and by oneDNN): the most any implementation of this step could reach
+here; also for the compiled step's own arithmetic, which runs nu once fewer on the batch. The library and the
+reference are checked to compute the same losses before timing. Timings on shared 2-core machines vary by
+30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians), are the stable
+numbers.
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ from torch import nn
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
-from spoil_torchrl.trainers.compiled import detached, set_gradients, update_gradients
+from spoil_torchrl.trainers.compiled import detached, set_gradients, update_gradients, use_fused_adam
 from spoil_torchrl.trainers.compiled_forms import compiled_forms
+from spoil_torchrl.trainers.precision import matmul_precision, matmul_relative_error
 
 
 def make_batch(n: int, n_init: int, obs_dim: int, act_dim: int) -> TensorDict:
@@ -87,7 +90,7 @@ class CompiledLibraryStep:
 
 class VectorizedSeeds:
     """``k`` seeds' steps as one update: the compiled step's pure update (``update_gradients``) vmapped over
-    parameters stacked along a leading seed dimension, compiled, and one Adam per loss over the stacked
+    parameters stacked along a leading seed dimension, compiled, and one (fused) Adam per loss over the stacked
     parameters (Adam is elementwise: the same as one Adam per seed). Each call is one step of every seed, each
     on its own batch (``k`` consecutive batches of ``batches``)."""
 
@@ -103,6 +106,7 @@ class VectorizedSeeds:
             for name, form in self.forms.items()
         }
         self.optims = [torch.optim.Adam(ps.values(), lr=lr) for ps in self.params.values()]
+        use_fused_adam(self.optims)  # as the compiled stepper's
         self.update = torch.compile(torch.vmap(update_gradients(self.forms)), fullgraph=True, dynamic=False)
 
     def __call__(self, batch: TensorDict) -> None:
@@ -290,63 +294,79 @@ def main() -> None:
     assert all(torch.isfinite(x) for x in (*ours, *theirs))
 
     cells = tuple(args.cells)
-    steps = {"spoil_torchrl": library, "plain reference": reference}
+    # name -> (step, float32 matmul precision it runs under: train.matmul_precision)
+    steps = {"spoil_torchrl": (library, "highest"), "plain reference": (reference, "highest")}
     compile_seconds = {}
-    for name, make in (
-        ("compiled", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
+    for name, precision, make in (
+        ("compiled", "highest", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
+        ("compiled, medium", "medium", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
         (
             f"{args.seeds} seeds vmapped",
+            "medium",
             lambda: VectorizedSeeds(args.seeds, args.obs_dim, args.act_dim, cells, batches),
         ),
     ):
         if name.startswith("0 seeds"):
             continue
         start = time.perf_counter()
-        steps[name] = make()
-        steps[name](batches[0])  # compiles
+        steps[name] = (make(), precision)
+        with matmul_precision(precision):
+            steps[name][0](batches[0])  # compiles
         compile_seconds[name] = time.perf_counter() - start
-    for step in steps.values():  # warm-up
-        rate(step, batches, 20)
+    steps["plain reference, medium"] = (reference, "medium")
+    for step, precision in steps.values():  # warm-up
+        with matmul_precision(precision):
+            rate(step, batches, 20)
     rates: dict[str, list[float]] = {name: [] for name in steps}
-    peaks: list[float] = []
+    peaks: dict[str, list[float]] = {"highest": [], "medium": []}
     for _ in range(args.repeats):  # interleaved, so all see the same machine load
-        for name, step in steps.items():  # (a vmapped call is a step of every seed: as many updates in all)
+        for name, (step, precision) in steps.items():  # (a vmapped call: a step of every seed)
             calls = max(1, args.steps // args.seeds) if name.endswith("vmapped") else args.steps
-            rates[name].append(rate(step, batches, calls))
-        peaks.append(matmul_rate(args.batch_size, args.cells, args.obs_dim))
+            with matmul_precision(precision):
+                rates[name].append(rate(step, batches, calls))
+        for precision, runs in peaks.items():
+            with matmul_precision(precision):
+                runs.append(matmul_rate(args.batch_size, args.cells, args.obs_dim))
     flops = step_flops(reference, batches[0])
-    form_flops = compiled_form_flops(steps["compiled"], batches[0])
+    form_flops = compiled_form_flops(steps["compiled"][0], batches[0])
     medians = {name: statistics.median(r) for name, r in rates.items()}
-    medians["FLOP limit"] = statistics.median(peaks) / flops
-    medians["FLOP limit, compiled"] = statistics.median(peaks) / form_flops
+    peak = {precision: statistics.median(runs) for precision, runs in peaks.items()}
+    medians["FLOP limit"] = peak["highest"] / flops
+    medians["FLOP limit, compiled"] = peak["highest"] / form_flops
+    medians["FLOP limit, compiled, medium"] = peak["medium"] / form_flops
     ref = medians["plain reference"]
+    with matmul_precision("medium"):
+        medium_error = matmul_relative_error()
     print(
         f"SpoilDICE + weighted-BC step, batch {args.batch_size}, cells {args.cells}, obs {args.obs_dim}, "
-        f"act {args.act_dim}, {args.threads} threads, median of {args.repeats} x {args.steps} steps"
+        f"act {args.act_dim}, {args.threads} threads, median of {args.repeats} x {args.steps} steps; float32 "
+        "products by MKL unless a row says medium (train.matmul_precision=medium: handed to oneDNN, here with a "
+        f"relative error of {medium_error:.1e}, float32's order if below 1e-4)"
     )
     for name, value in medians.items():
         runs = rates.get(name)
         if name.endswith("vmapped"):  # a call is one step of every seed
             total = args.seeds * value
             print(
-                f"  {name:<20}: {value:8.1f} updates/s per seed, {total:.1f} in total   ratio to reference "
+                f"  {name + ' (medium)':<28}: {value:8.1f} updates/s per seed, {total:.1f} in total   ratio to reference "
                 f"{total / ref:6.2f} in total, {total / medians['spoil_torchrl']:.2f} x the eager library's "
                 f"total for {args.seeds} seeds one after another   (runs: {[round(r, 1) for r in runs]}; "
                 f"compiling {compile_seconds[name]:.0f} s)"
             )
             continue
-        step_gflop = (form_flops if name.endswith("compiled") else flops) / 1e9
+        step_gflop = (form_flops if "compiled" in name else flops) / 1e9
+        rate_gflops = peak["medium" if name.endswith("medium") else "highest"] / 1e9
         detail = (
             f"(runs: {[round(r, 1) for r in runs]})"
             if runs
             else (
-                f"({step_gflop:.2f} GFLOP per step at {statistics.median(peaks) / 1e9:.0f} GFLOP/s, measured on "
-                "the step's layer shapes)"
+                f"({step_gflop:.2f} GFLOP per step at {rate_gflops:.0f} GFLOP/s, measured on the step's "
+                "layer shapes)"
             )
         )
         if name in compile_seconds:
             detail += f" compiling {compile_seconds[name]:.0f} s"
-        print(f"  {name:<20}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")
+        print(f"  {name:<28}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")
     sample = sampling_seconds(args.batch_size, args.obs_dim, args.act_dim)
     print(
         f"  sampling the four roles: {1000 * sample:.2f} ms per batch = "

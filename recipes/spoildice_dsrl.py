@@ -70,6 +70,11 @@ from spoil_torchrl.trainers.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from spoil_torchrl.trainers.precision import (
+    REDUCED_PRECISION_ERROR,
+    matmul_precision,
+    matmul_relative_error,
+)
 from spoil_torchrl.trainers.resume import (
     csv_row_counts,
     pretraining_fingerprint,
@@ -111,6 +116,19 @@ def aggregate(evaluations: list[dict], last: int) -> dict:
     return {key: sum(e[key] for e in tail) / len(tail) for key in METRICS}
 
 
+def matmul_check() -> float:
+    """The relative error of float32 products at the run's matmul precision; a warning when they lose precision
+    (``train.matmul_precision=medium`` on a CPU whose oneDNN takes bfloat16 kernels, e.g. one with AMX)."""
+    error = matmul_relative_error()
+    if error > REDUCED_PRECISION_ERROR:
+        log.warning(
+            f"train.matmul_precision={torch.get_float32_matmul_precision()}: float32 products lose precision on "
+            f"this machine (relative error {error:.1e}: bfloat16 kernels); train.matmul_precision=highest keeps "
+            "them IEEE float32"
+        )
+    return error
+
+
 def settings_yaml(cfg: DictConfig) -> str:
     """The resolved settings as written to ``config.yaml`` (``resume`` left out: it says how to start, not
     what to train)."""
@@ -128,8 +146,9 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.algo.name not in ALGORITHMS:
         raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     resuming = claim_run_dir(run_dir, resume=cfg.get("resume", False))  # never starts over a run
-    try:
-        return _run(cfg, run_dir, resuming, start)
+    try:  # float32 products as configured (train.matmul_precision), the process's own level restored after
+        with matmul_precision(cfg.train.get("matmul_precision", "highest")):
+            return _run(cfg, run_dir, resuming, start)
     finally:
         release_run_dir(run_dir)
 
@@ -213,6 +232,8 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
             "data": data.summary(),
             "status": "pre-training",
             "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)
+            "matmul_precision": torch.get_float32_matmul_precision(),
+            "matmul_relative_error": matmul_check(),  # float32 products as this machine computes them
             "evaluations": [],
         }
         if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)

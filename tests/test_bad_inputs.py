@@ -235,6 +235,10 @@ SETTING_CASES = [
     ({"train": {"discriminator_steps": 0}}, "train.discriminator_steps = 0"),
     ({"train": {"lr": float("nan")}}, "train.lr = nan"),
     ({"train": {"batch_size": 12.5}}, "train.batch_size = 12.5"),
+    (
+        {"train": {"matmul_precision": "bf16"}},
+        "train.matmul_precision = 'bf16': expected highest | high | medium",
+    ),
     ({"threads": 0}, "threads = 0"),
     ({"dataset": {"n_safe": 0}}, "dataset.n_safe = 0"),
     ({"dataset": {"safeness": 1.5}}, "dataset.safeness = 1.5"),

@@ -89,8 +89,11 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     from spoil_torchrl.eval import read_rollouts
     from spoil_torchrl.experts import load_policy
 
-    proc, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "train.compile=true")
+    proc, results = _dsrl_recipe(
+        tmp_path, tiny_pc1_dataset, "train.compile=true", "train.matmul_precision=medium"
+    )
     assert results["update_step"] == "compiled" and "runs eagerly" not in proc.stdout + proc.stderr
+    assert results["matmul_precision"] == "medium" and results["matmul_relative_error"] > 0
     assert "| normalized_feasible_return |" in proc.stdout
     assert "| normalized_feasible_return |" in (tmp_path / "spoildice_dsrl.log").read_text()
     assert "\x1b" not in proc.stdout + proc.stderr and "AdroitHand" not in proc.stderr
@@ -128,6 +131,7 @@ def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
     )
     assert results["algo"] == "bc" and results["diagnostics"] == {} and results["status"] == "finished"
     assert results["update_step"] == "eager"  # the smoke preset does not compile
+    assert results["matmul_precision"] == "highest"  # nor take the bfloat16 path of float32 products
     assert [e["step"] for e in results["evaluations"]] == [100, 200]
     assert "dice_diagnostics" not in results and "dice" not in results["evaluations"][0]
     _, meta = load_policy(tmp_path / "checkpoints" / "policy.pt")

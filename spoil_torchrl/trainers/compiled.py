@@ -16,7 +16,9 @@ What differs from the eager step, and why the numbers agree only to float tolera
   the current states, see :func:`~spoil_torchrl.objectives.functional.penalty_points`) once, for both the dual
   and the penalty, instead of on the current states a second time: the same values, one forward pass of the
   batch fewer;
-* the compiler fuses and reorders float operations.
+* the compiler fuses and reorders float operations;
+* Adam runs PyTorch's fused kernel (:func:`use_fused_adam`), whose floats differ from the default kernel's in
+  the last bit.
 
 The random numbers (the penalty's interpolation points) are drawn outside the graph, in the eager step's order,
 so a compiled run consumes the same random stream as an eager one; a compiled run is as deterministic as an
@@ -77,6 +79,37 @@ def set_gradients(parameters: Mapping[str, Mapping[str, torch.Tensor]], grads: M
             p.grad = grads[name][key]
 
 
+def use_fused_adam(optimizers) -> None:
+    """Switch the (exactly) ``torch.optim.Adam`` / ``AdamW`` optimizers among ``optimizers`` (or wrapped by a
+    :class:`~spoil_torchrl.trainers.StepEvery`) to PyTorch's fused kernel, one kernel per step for all their
+    parameters instead of a few per tensor (on CPU 0.17 ms against 0.49 ms for the default networks' twelve
+    tensors). The update is Adam's; its floats differ from the default kernel's in the last bit, which is why the
+    eager stepper keeps the default. Optimizers of other classes, or with parameters the fused kernel does not
+    take (not floating point, or on a device without it), are left as they are.
+
+    Examples:
+        >>> optim = torch.optim.Adam([nn.Parameter(torch.zeros(3))], lr=1e-3)
+        >>> use_fused_adam([optim])
+        >>> optim.param_groups[0]["fused"], optim.param_groups[0]["foreach"]
+        (True, False)
+    """
+    from torch.optim.optimizer import _get_fused_kernels_supported_devices
+
+    for optim in optimizers:
+        optim = getattr(optim, "optimizer", optim)  # StepEvery holds one
+        if type(optim) not in (torch.optim.Adam, torch.optim.AdamW):
+            continue
+        params = [p for group in optim.param_groups for p in group["params"]]
+        devices = _get_fused_kernels_supported_devices()
+        if any(group["differentiable"] for group in optim.param_groups) or not all(
+            p.is_floating_point() and p.device.type in devices for p in params
+        ):
+            continue
+        for group in optim.param_groups:
+            group["fused"], group["foreach"] = True, False
+        optim.defaults.update(fused=True, foreach=False)
+
+
 _STEPPERS = itertools.count()
 
 
@@ -115,7 +148,8 @@ def _set_rng_state(device: torch.device, state: tuple) -> None:
 class CompiledStepper(MultiLossStepper):
     """:class:`~spoil_torchrl.trainers.offline.MultiLossStepper` whose step is one ``torch.compile``\\ d graph.
 
-    Same constructor, outputs (``<loss>.<entry>`` scalars), optimisers and state dict as the eager stepper. When
+    Same constructor, outputs (``<loss>.<entry>`` scalars), optimisers and state dict as the eager stepper; once
+    its first step has compiled, its Adam optimisers run PyTorch's fused kernel (:func:`use_fused_adam`). When
     a loss has no compiled form, or the first step fails to compile, it says so once (a warning of this module's
     logger) and steps eagerly from then on; that first step's random draws are undone first, so the run is the
     eager run.
@@ -195,6 +229,8 @@ class CompiledStepper(MultiLossStepper):
             self._forms, self._fn = None, None
             _set_rng_state(device, rng)
             return super().step(trainer, sub_batch)
+        if not self.compiled:  # the step compiles: from now on Adam runs as one fused kernel too
+            use_fused_adam(self.optimizers)
         self.compiled = True
         self._apply_gradients(lambda: set_gradients(parameters, grads))
         return scalar_outputs(outputs)

@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from spoil_torchrl.data.prepare import SCHEMES
+from spoil_torchrl.trainers.precision import MATMUL_PRECISIONS
 
 
 class SettingsError(ValueError):
@@ -64,6 +65,7 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "nu_gradient_penalty": (_penalty, "a number >= 0"),
     "hidden_cells": (_layers, "a list of layer sizes >= 1"),
     "compile": (lambda v: isinstance(v, bool), "true or false"),
+    "matmul_precision": (lambda v: v in MATMUL_PRECISIONS, " | ".join(MATMUL_PRECISIONS)),
     "alpha": (
         lambda v: v == "auto" or _non_negative(v),
         "a number >= 0 (or auto where the algorithm allows)",

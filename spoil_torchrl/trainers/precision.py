@@ -1,0 +1,70 @@
+"""How float32 matrix products are computed during a run: PyTorch's ``float32_matmul_precision``, scoped.
+
+``train.matmul_precision`` names one of PyTorch's three levels (:func:`torch.set_float32_matmul_precision`):
+
+* ``"highest"``: IEEE float32 products everywhere (the committed eager results' mode);
+* ``"high"``: TF32 tensor cores on NVIDIA GPUs (and oneDNN's TF32 path on CPUs that have one);
+* ``"medium"``: on CPUs with AVX512-BF16 or AMX, oneDNN's bfloat16 path for float32 products; on NVIDIA GPUs,
+  TF32.
+
+Tensors, parameters, optimiser states and every non-matmul operation stay float32 at all three levels: only the
+inside of a matrix product may change. What ``"medium"`` does on a CPU depends on the CPU. It hands float32
+products to oneDNN and allows it bfloat16 arithmetic; on this project's machines (AMD EPYC, AVX-512 without AMX)
+oneDNN still picks its float32 kernel (``ONEDNN_VERBOSE=1`` names ``brg_matmul:avx512_core``), which runs the
+step's layer products 2.3x as fast as the MKL kernel ``"highest"`` uses, at float32 accuracy (largest relative
+error against float64: 4e-6, against 2e-6 for MKL; CONTRIBUTING.md, "Choices"). On a CPU with AMX, oneDNN may
+take bfloat16 kernels instead (relative errors of ~1e-2). :func:`matmul_relative_error` measures which of the
+two a machine does; the main recipe records it in ``results.json`` and says so when products lose precision.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+
+#: The levels of :func:`torch.set_float32_matmul_precision`, most exact first.
+MATMUL_PRECISIONS = ("highest", "high", "medium")
+
+#: Above this relative error a float32 product has lost precision: IEEE float32 kernels stay below 1e-5 on
+#: :func:`matmul_relative_error`'s product, a bfloat16 rounding of the inputs alone gives ~1e-2.
+REDUCED_PRECISION_ERROR = 1e-4
+
+
+@contextlib.contextmanager
+def matmul_precision(precision: str) -> Iterator[None]:
+    """Run the block with ``torch.set_float32_matmul_precision(precision)``, restoring the previous level after.
+
+    Examples:
+        >>> with matmul_precision("medium"):
+        ...     torch.get_float32_matmul_precision()
+        'medium'
+        >>> torch.get_float32_matmul_precision()
+        'highest'
+    """
+    if precision not in MATMUL_PRECISIONS:
+        raise ValueError(f"matmul precision must be one of {MATMUL_PRECISIONS}, got {precision!r}")
+    previous = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(precision)
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(previous)
+
+
+def matmul_relative_error(rows: int = 512, cells: int = 256) -> float:
+    """Largest relative error, against float64, of a float32 ``[rows, cells] x [cells, cells]`` product (the size of
+    a hidden layer of the default networks on a batch) at the current matmul precision, on the CPU.
+
+    Below :data:`REDUCED_PRECISION_ERROR` the products are float32 whatever kernel computes them.
+
+    Examples:
+        >>> matmul_relative_error() < REDUCED_PRECISION_ERROR  # "highest": IEEE float32
+        True
+    """
+    generator = torch.Generator().manual_seed(0)
+    a = torch.randn(rows, cells, generator=generator)
+    b = torch.randn(cells, cells, generator=generator)
+    exact = a.double() @ b.double()
+    return float(((a @ b).double() - exact).abs().max() / exact.abs().mean())
