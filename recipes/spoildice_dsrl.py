@@ -146,9 +146,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.algo.name not in ALGORITHMS:
         raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     resuming = claim_run_dir(run_dir, resume=cfg.get("resume", False))  # never starts over a run
-    try:  # float32 products as configured (train.matmul_precision), the process's own level restored after
-        with matmul_precision(cfg.train.get("matmul_precision", "highest")):
-            return _run(cfg, run_dir, resuming, start)
+    try:
+        return _run(cfg, run_dir, resuming, start)
     finally:
         release_run_dir(run_dir)
 
@@ -232,17 +231,18 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
             "data": data.summary(),
             "status": "pre-training",
             "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)
-            "matmul_precision": torch.get_float32_matmul_precision(),
-            "matmul_relative_error": matmul_check(),  # float32 products as this machine computes them
             "evaluations": [],
         }
         if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
             results["tracking"] = tracking
     write_json(run_dir / "results.json", results)
 
-    try:
+    try:  # training's float32 products as configured; the data's and the evaluations' stay the process's (IEEE)
         pools = segment_pools(data.metadata) if "segments" in data.metadata else None
-        return _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start, state)
+        with matmul_precision(train.get("matmul_precision", "highest")):
+            results["matmul_precision"] = torch.get_float32_matmul_precision()
+            results["matmul_relative_error"] = matmul_check()  # as this machine computes them
+            return _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start, state)
     except BaseException as err:  # keep what was done, say why it stopped, re-raise
         results["status"] = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
         results["error"] = f"{type(err).__name__}: {err}"

@@ -13,6 +13,7 @@ from torchrl.modules import ProbabilisticActor
 from spoil_torchrl.eval.env_scene import make_render_env, replay_episodes, task_view
 from spoil_torchrl.eval.mcap_writer import RolloutWriter
 from spoil_torchrl.eval.metrics import episode_metrics
+from spoil_torchrl.trainers.precision import matmul_precision
 
 #: Per-evaluation metrics (means over the evaluation's episodes) that :class:`Evaluator` reports.
 METRICS = (
@@ -73,7 +74,8 @@ class Evaluator:
     """Runs ``episodes`` deterministic episodes of a policy in ``env_id`` and reports the paper's metrics.
 
     Each call rolls the policy out (:func:`spoil_torchrl.data.collect.rollout` with the policy's deterministic
-    action, the same ``seed`` every time so that evaluations differ only by the policy), computes the per-episode
+    action, the same ``seed`` every time and IEEE float32 products whatever the caller's
+    :func:`torch.set_float32_matmul_precision`, so that evaluations differ only by the policy), computes the per-episode
     metrics with :func:`~spoil_torchrl.eval.episode_metrics` (return, cost, feasible return and its strict
     variant, normalised return / feasible return / cost), writes every episode to ``writer`` (an MCAP
     :class:`~spoil_torchrl.eval.RolloutWriter`) when given, and returns the means over episodes.
@@ -135,16 +137,17 @@ class Evaluator:
 
         was_training = policy.training
         policy.eval()
-        try:
-            arrays = rollout(
-                self.env_id,
-                policy,
-                self.episodes,
-                seed=self.seed,
-                num_envs=self.num_envs,
-                deterministic=True,
-                progress=False,
-            )
+        try:  # IEEE float32 products whatever the caller's level (train.matmul_precision is training's)
+            with matmul_precision("highest"):
+                arrays = rollout(
+                    self.env_id,
+                    policy,
+                    self.episodes,
+                    seed=self.seed,
+                    num_envs=self.num_envs,
+                    deterministic=True,
+                    progress=False,
+                )
         finally:
             policy.train(was_training)
         padded = pad_episodes(arrays)

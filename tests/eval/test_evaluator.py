@@ -50,3 +50,23 @@ def test_evaluator_metrics_and_mcap(tmp_path):
     assert rollouts.episodes["return"][:2].tolist() == pytest.approx(first["episodes"]["return"])
     with pytest.raises(ValueError, match="return_range"):
         Evaluator("SafetyPointCircle1-v0", cost_threshold=25.0, return_range=(1.0, 1.0))
+
+
+@pytest.mark.skipif(importlib.util.find_spec("safety_gymnasium") is None, reason="safety-gymnasium missing")
+def test_an_evaluation_does_not_depend_on_the_callers_matmul_precision():
+    """``train.matmul_precision`` is training's: a policy's evaluation is the same whatever level it is called at
+    (on this project's CPUs ``medium`` moves this policy's actions in the last bits, which the simulator amplifies
+    into other episodes)."""
+    import torch
+
+    from spoil_torchrl.modules import make_actor
+    from spoil_torchrl.trainers.precision import matmul_precision
+
+    torch.manual_seed(0)
+    policy = make_actor(28, 2, hidden_cells=(256, 256))
+    evaluator = Evaluator("SafetyPointCircle1-v0", cost_threshold=25.0, return_range=(0.0, 40.0), episodes=2)
+    ieee = evaluator(policy)
+    with matmul_precision("medium"):
+        medium = evaluator(policy)
+        assert torch.get_float32_matmul_precision() == "medium"  # the caller's level, restored
+    assert medium["episodes"] == ieee["episodes"]
