@@ -93,14 +93,17 @@ def use_fused_adam(optimizers) -> None:
         >>> optim.param_groups[0]["fused"], optim.param_groups[0]["foreach"]
         (True, False)
     """
-    from torch.optim.optimizer import _get_fused_kernels_supported_devices
+    try:  # a private helper of torch.optim: the devices with fused kernels
+        from torch.optim.optimizer import _get_fused_kernels_supported_devices
 
+        devices = _get_fused_kernels_supported_devices()
+    except ImportError:
+        devices = ["cpu", "cuda"]
     for optim in optimizers:
         optim = getattr(optim, "optimizer", optim)  # StepEvery holds one
         if type(optim) not in (torch.optim.Adam, torch.optim.AdamW):
             continue
         params = [p for group in optim.param_groups for p in group["params"]]
-        devices = _get_fused_kernels_supported_devices()
         if any(group["differentiable"] for group in optim.param_groups) or not all(
             p.is_floating_point() and p.device.type in devices for p in params
         ):

@@ -4,15 +4,15 @@
 
 * ``"highest"``: IEEE float32 products everywhere (the committed eager results' mode);
 * ``"high"``: TF32 tensor cores on NVIDIA GPUs (and oneDNN's TF32 path on CPUs that have one);
-* ``"medium"``: on CPUs with AVX512-BF16 or AMX, oneDNN's bfloat16 path for float32 products; on NVIDIA GPUs,
-  TF32.
+* ``"medium"``: on a CPU, float32 products handed to oneDNN, which may use bfloat16 arithmetic (below); on
+  NVIDIA GPUs, TF32.
 
 Tensors, parameters, optimiser states and every non-matmul operation stay float32 at all three levels: only the
 inside of a matrix product may change. What ``"medium"`` does on a CPU depends on the CPU. It hands float32
 products to oneDNN and allows it bfloat16 arithmetic; on this project's machines (AMD EPYC, AVX-512 without AMX)
 oneDNN still picks its float32 kernel (``ONEDNN_VERBOSE=1`` names ``brg_matmul:avx512_core``), which runs the
 step's layer products 2.2x as fast as the MKL kernel ``"highest"`` uses, at float32 accuracy (largest relative
-error against float64: 4e-6, against 2e-6 for MKL; CONTRIBUTING.md, "Choices"). On a CPU with AMX, oneDNN may
+error against float64: 4e-6, against 2e-6 for MKL; CONTRIBUTING.md, "Matmul precision"). On a CPU with AMX, oneDNN may
 take bfloat16 kernels instead (relative errors of ~1e-2). :func:`matmul_relative_error` measures which of the
 two a machine does; the main recipe records it in ``results.json`` and says so when products lose precision.
 The recipe applies the level to training (pre-training and the main stage) only: it prepares the data and the
