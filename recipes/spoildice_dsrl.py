@@ -237,7 +237,7 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
             results["tracking"] = tracking
     write_json(run_dir / "results.json", results)
 
-    try:  # training's float32 products as configured; the data's and the evaluations' stay the process's (IEEE)
+    try:  # training's float32 products as configured (the data are ready; every rollout computes IEEE products)
         pools = segment_pools(data.metadata) if "segments" in data.metadata else None
         with matmul_precision(train.get("matmul_precision", "highest")):
             results["matmul_precision"] = torch.get_float32_matmul_precision()

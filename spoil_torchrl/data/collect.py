@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from spoil_torchrl.data.hdf5 import write_dsrl_file
 from spoil_torchrl.tasks import get_env_task
+from spoil_torchrl.trainers.precision import matmul_precision
 
 #: ``policy`` value of a :class:`Segment` that acts uniformly at random.
 RANDOM_POLICY = "random"
@@ -95,6 +96,10 @@ def rollout(
         progress, desc: a progress bar of its own, labelled ``desc``;
         bar: or advance this (the caller's) bar instead, showing ``desc`` beside it (one bar over many calls).
 
+    The episodes depend on these arguments only: the rollout draws from its own random stream and computes the
+    policy's float32 products in IEEE precision whatever the caller's :func:`torch.set_float32_matmul_precision`
+    (a training's ``train.matmul_precision`` changes neither a generated dataset nor an evaluation).
+
     Returns:
         ``observations``, ``next_observations``, ``actions``, ``rewards``, ``costs`` (float32), ``terminals``,
         ``timeouts`` (bool), episodes back to back in the order they finished. Actions are clipped to the
@@ -122,7 +127,13 @@ def rollout(
     elif desc:
         bar.set_postfix_str(desc)
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    with torch.random.fork_rng(devices=[]), torch.no_grad(), set_exploration_type(mode):
+    # The caller's random stream and float32 matmul precision (e.g. a training's) leave the episodes untouched.
+    with (
+        torch.random.fork_rng(devices=[]),
+        matmul_precision("highest"),
+        torch.no_grad(),
+        set_exploration_type(mode),
+    ):
         torch.manual_seed(_derive_seed(seed, 4))
         while active:
             batch = np.stack([obs[i] for i in active]).astype(np.float32)

@@ -13,7 +13,6 @@ from torchrl.modules import ProbabilisticActor
 from spoil_torchrl.eval.env_scene import make_render_env, replay_episodes, task_view
 from spoil_torchrl.eval.mcap_writer import RolloutWriter
 from spoil_torchrl.eval.metrics import episode_metrics
-from spoil_torchrl.trainers.precision import matmul_precision
 
 #: Per-evaluation metrics (means over the evaluation's episodes) that :class:`Evaluator` reports.
 METRICS = (
@@ -74,7 +73,7 @@ class Evaluator:
     """Runs ``episodes`` deterministic episodes of a policy in ``env_id`` and reports the paper's metrics.
 
     Each call rolls the policy out (:func:`spoil_torchrl.data.collect.rollout` with the policy's deterministic
-    action, the same ``seed`` every time and IEEE float32 products whatever the caller's
+    action, the same ``seed`` every time and, as every rollout, IEEE float32 products whatever the caller's
     :func:`torch.set_float32_matmul_precision`, so that evaluations differ only by the policy), computes the per-episode
     metrics with :func:`~spoil_torchrl.eval.episode_metrics` (return, cost, feasible return and its strict
     variant, normalised return / feasible return / cost), writes every episode to ``writer`` (an MCAP
@@ -137,17 +136,16 @@ class Evaluator:
 
         was_training = policy.training
         policy.eval()
-        try:  # IEEE float32 products whatever the caller's level (train.matmul_precision is training's)
-            with matmul_precision("highest"):
-                arrays = rollout(
-                    self.env_id,
-                    policy,
-                    self.episodes,
-                    seed=self.seed,
-                    num_envs=self.num_envs,
-                    deterministic=True,
-                    progress=False,
-                )
+        try:
+            arrays = rollout(
+                self.env_id,
+                policy,
+                self.episodes,
+                seed=self.seed,
+                num_envs=self.num_envs,
+                deterministic=True,
+                progress=False,
+            )
         finally:
             policy.train(was_training)
         padded = pad_episodes(arrays)

@@ -15,9 +15,9 @@ step's layer products 2.2x as fast as the MKL kernel ``"highest"`` uses, at floa
 error against float64: 4e-6, against 2e-6 for MKL; CONTRIBUTING.md, "Matmul precision"). On a CPU with AMX, oneDNN may
 take bfloat16 kernels instead (relative errors of ~1e-2). :func:`matmul_relative_error` measures which of the
 two a machine does; the main recipe records it in ``results.json`` and says so when products lose precision.
-The recipe applies the level to training (pre-training and the main stage) only: it prepares the data and the
-:class:`~spoil_torchrl.eval.Evaluator` rolls policies out with IEEE products, so neither a cached dataset nor an
-evaluation depends on it.
+The recipe applies the level to training (pre-training and the main stage) only, and every policy rollout
+(:func:`~spoil_torchrl.data.collect.rollout`: generated datasets, evaluations) computes IEEE products whatever the
+level, so neither a cached dataset nor an evaluation depends on it.
 """
 
 from __future__ import annotations
