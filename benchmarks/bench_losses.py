@@ -6,15 +6,15 @@
 Prints updates/s, each as a ratio to the plain reference, for: the library's LossModules stepped eagerly
 (``MultiLossStepper``'s step), the library's compiled step (``CompiledStepper``, ``train.compile=true``), the
 compiled step with float32 products handed to oneDNN (``train.matmul_precision=medium``, the default preset's;
-float32 kernels on this project's CPUs), K seeds vectorised (the compiled step's pure update vmapped over stacked
-parameters, at medium: per seed and in total), a hand-written plain-PyTorch reference of the same step (same
-networks, loss and gradient penalty; with MKL's products, the ratios' base, and at medium), and the step's FLOP
-limit on this machine (the step's FLOPs counted with PyTorch's per-operator formulas, over a measured matmul rate
-of the step's own layer shapes, by MKL and by oneDNN): the most any implementation of this step could reach
-here; also for the compiled step's own arithmetic, which runs nu once fewer on the batch. The library and the
-reference are checked to compute the same losses before timing. Timings on shared 2-core machines vary by
-30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians), are the stable
-numbers.
+float32 kernels on this project's CPUs), K seeds vectorised (``VectorizedStepper``, the recipe's ``seeds=[...]``:
+the compiled step's pure update vmapped over stacked parameters, at medium; per seed and in total), a hand-written
+plain-PyTorch reference of the same step (same networks, loss and gradient penalty; with MKL's products, the ratios'
+base, and at medium), and the step's FLOP limit on this machine (the step's FLOPs counted with PyTorch's per-
+operator formulas, over a measured matmul rate of the step's own layer shapes, by MKL and by oneDNN): the most any
+implementation of this step could reach here; also for the compiled step's own arithmetic, which runs nu once fewer
+on the batch. The library and the reference are checked to compute the same losses before timing. Timings on shared
+2-core machines vary by 30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians),
+are the stable numbers.
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ from torch import nn
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
-from spoil_torchrl.trainers.compiled import detached, set_gradients, update_gradients, use_fused_adam
-from spoil_torchrl.trainers.compiled_forms import compiled_forms
+from spoil_torchrl.trainers.compiled import detached, update_gradients
 from spoil_torchrl.trainers.precision import matmul_precision, matmul_relative_error
+from spoil_torchrl.trainers.vectorized import VectorizedStepper
 
 
 def make_batch(n: int, n_init: int, obs_dim: int, act_dim: int) -> TensorDict:
@@ -89,38 +89,20 @@ class CompiledLibraryStep:
 
 
 class VectorizedSeeds:
-    """``k`` seeds' steps as one update: the compiled step's pure update (``update_gradients``) vmapped over
-    parameters stacked along a leading seed dimension, compiled, and one (fused) Adam per loss over the stacked
-    parameters (Adam is elementwise: the same as one Adam per seed). Each call is one step of every seed, each
-    on its own batch (``k`` consecutive batches of ``batches``)."""
+    """``k`` seeds' steps as one update: the library's :class:`VectorizedStepper` (the recipe's ``seeds=[...]``)
+    over ``k`` fresh library steps: parameters stacked along a seed dimension, the compiled step's pure update
+    vmapped and compiled, one fused Adam per optimiser over the stacked parameters, each seed's random stream.
+    Each call is one step of every seed, each on its own batch (``k`` consecutive batches of ``batches``)."""
 
-    def __init__(self, k: int, obs_dim: int, act_dim: int, cells: tuple[int, ...], batches, lr=3e-5) -> None:
+    def __init__(self, k: int, obs_dim: int, act_dim: int, cells: tuple[int, ...], batches) -> None:
         seeds = [LibraryStep(obs_dim, act_dim, cells) for _ in range(k)]
-        forms = [compiled_forms({"dice": s.dice, "actor": s.bc}) for s in seeds]
-        self.forms, self.k, self.batches, self.calls = forms[0], k, batches, 0
-        self.params = {
-            name: {
-                key: torch.stack([f[name].parameters()[key].detach() for f in forms]).requires_grad_(True)
-                for key in form.parameters()
-            }
-            for name, form in self.forms.items()
-        }
-        self.optims = [torch.optim.Adam(ps.values(), lr=lr) for ps in self.params.values()]
-        use_fused_adam(self.optims)  # as the compiled stepper's
-        self.update = torch.compile(torch.vmap(update_gradients(self.forms)), fullgraph=True, dynamic=False)
+        self.stepper = VectorizedStepper([s.stepper for s in seeds], [torch.get_rng_state()] * k)
+        self.k, self.batches, self.calls = k, batches, 0
 
     def __call__(self, batch: TensorDict) -> None:
         picked = [self.batches[(self.k * self.calls + i) % len(self.batches)] for i in range(self.k)]
         self.calls += 1
-        per_seed = [{name: form.inputs(b) for name, form in self.forms.items()} for b in picked]
-        inputs = {
-            name: {key: torch.stack([x[name][key] for x in per_seed]) for key in per_seed[0][name]}
-            for name in self.forms
-        }
-        grads, _ = self.update(detached(self.params), inputs)
-        set_gradients(self.params, grads)
-        for optim in self.optims:
-            optim.step()
+        self.stepper.step(None, picked)
 
 
 def sampling_seconds(batch_size: int, obs_dim: int, act_dim: int, repeats: int = 200) -> float:

@@ -5,6 +5,7 @@
     python recipes/spoildice_dsrl.py preset=smoke        # plumbing check, well under a minute
     python recipes/spoildice_dsrl.py preset=paper        # Table J: 1M iterations, lr 3e-5
     python recipes/spoildice_dsrl.py hydra.run.dir=<run dir> resume=true   # continue a killed run
+    python recipes/spoildice_dsrl.py seeds=[0,1,2,3,4]   # five seeds' main stages in one vectorised step
 
 Reads like Algorithm 1 of the paper:
 
@@ -21,12 +22,17 @@ Reads like Algorithm 1 of the paper:
    ``results.json`` is rewritten after every evaluation and the MCAP file is flushed after every episode, so an
    interrupted run keeps both; ``checkpoints/training_state.pt`` lets it continue exactly (``resume=true``).
    A start never overwrites a run: the directory is claimed first (``spoil_torchrl.trainers.run_dir``).
+
+``seeds=[...]`` runs every seed's Algorithm 1 in one process: input and pre-training seed after seed, each from
+its own random stream, then the main stages at once (``train_seeds``: the networks stacked along a seed
+dimension, one vmapped, compiled update, :class:`~spoil_torchrl.trainers.vectorized.VectorizedStepper`). Each
+seed writes a single-seed run's files, with its settings, into ``seed<k>/`` of the run directory.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
-import json
 import logging
 import math
 import os
@@ -37,7 +43,8 @@ from pathlib import Path
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
+from torch import nn
 
 from spoil_torchrl.data import (
     DualDemoBuffers,
@@ -47,19 +54,9 @@ from spoil_torchrl.data import (
 )
 from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.prepare import prepare_dataset
-from spoil_torchrl.eval import Evaluator, RolloutWriter
-from spoil_torchrl.eval.dice_diagnostics import (
-    dice_diagnostics,
-    explain,
-    source_masks,
-    subsample,
-    summary_scalars,
-    support_accuracy,
-)
+from spoil_torchrl.eval import Evaluator
+from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.eval.evaluator import METRICS
-from spoil_torchrl.eval.mcap_resume import continue_rollouts
-from spoil_torchrl.experts import save_policy
-from spoil_torchrl.files import write_atomic
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import CompiledStepper, offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
@@ -67,16 +64,10 @@ from spoil_torchrl.trainers.checkpoint import (
     CheckpointError,
     load_checkpoint,
     rng_state,
-    save_checkpoint,
     set_rng_state,
 )
-from spoil_torchrl.trainers.precision import (
-    REDUCED_PRECISION_ERROR,
-    matmul_precision,
-    matmul_relative_error,
-)
+from spoil_torchrl.trainers.precision import matmul_precision
 from spoil_torchrl.trainers.resume import (
-    csv_row_counts,
     pretraining_fingerprint,
     settings_differ,
     trim_csv_logs,
@@ -86,79 +77,62 @@ from spoil_torchrl.trainers.run_dir import (
     RunDirError,
     claim_run_dir,
     release_run_dir,
-    write_lock,
+)
+from spoil_torchrl.trainers.run_results import settings_yaml, summary_table, write_json
+from spoil_torchrl.trainers.seed_run import (
+    SeedRun,
+    common_checkpoints,
+    evaluate,
+    evaluation_due,
+    finish,
+    keep_previous_checkpoints,
+    main_stage_clock,
+    note_precision,
+    performant_support,
+    recorded_failure,
+    rollout_writer,
+    save_state,
 )
 from spoil_torchrl.trainers.settings import SettingsError, check_settings
 from spoil_torchrl.trainers.tracking import check_logger_available, make_logger
+from spoil_torchrl.trainers.vectorized import VectorizedStepper
 
 log = logging.getLogger(__name__)
 
 
-def _json_safe(value):
-    """NaN / inf are not JSON: write them as null."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
-
-
-def write_json(path: Path, payload: dict) -> None:
-    """Write ``payload`` atomically (a reader never sees half a file)."""
-    write_atomic(path, json.dumps(_json_safe(payload), indent=2, allow_nan=False))
-
-
-def aggregate(evaluations: list[dict], last: int) -> dict:
-    """The paper's per-run aggregate: each metric's mean over the last ``last`` evaluations."""
-    tail = evaluations[-last:]
-    return {key: sum(e[key] for e in tail) / len(tail) for key in METRICS}
-
-
-def matmul_check() -> float:
-    """The relative error of float32 products at the run's matmul precision; a warning when they lose precision
-    (``train.matmul_precision=medium`` on a CPU whose oneDNN takes bfloat16 kernels, e.g. one with AMX)."""
-    error = matmul_relative_error()
-    if error > REDUCED_PRECISION_ERROR:
-        log.warning(
-            f"train.matmul_precision={torch.get_float32_matmul_precision()}: float32 products lose precision on "
-            f"this machine (relative error {error:.1e}: bfloat16 kernels); train.matmul_precision=highest keeps "
-            "them IEEE float32"
-        )
-    return error
-
-
-def settings_yaml(cfg: DictConfig) -> str:
-    """The resolved settings as written to ``config.yaml`` (``resume`` left out: it says how to start, not
-    what to train)."""
-    settings = OmegaConf.to_container(cfg, resolve=True)
-    settings.pop("resume", None)
-    return OmegaConf.to_yaml(OmegaConf.create(settings))
-
-
-def run(cfg: DictConfig, run_dir: Path) -> dict:
+def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
     """Train and evaluate as configured (or continue the run in ``run_dir``, ``resume=true``); returns the
-    content of ``results.json``."""
+    content of ``results.json`` (one per seed, in ``seed<k>/``, for ``seeds=[...]``)."""
     start = time.perf_counter()
     check_settings(OmegaConf.to_container(cfg, resolve=True))  # before any data loading or training
     check_logger_available(cfg.logger.type)  # a missing tensorboard / wandb fails now, not after pre-training
     if cfg.algo.name not in ALGORITHMS:
         raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
-    resuming = claim_run_dir(run_dir, resume=cfg.get("resume", False))  # never starts over a run
+    seeds = cfg.get("seeds")
+    resume = cfg.get("resume", False)
+    # never starts over a run (a seeds=[...] run keeps its runs in seed<k>/, each claimed on its own)
+    resuming = claim_run_dir(run_dir, resume="auto" if seeds and resume else resume)
     try:
-        return _run(cfg, run_dir, resuming, start)
+        if seeds:
+            return run_seeds(cfg, run_dir, [int(s) for s in seeds], start)
+        seed_run = open_run(cfg, run_dir, run_dir / CHECKPOINT_NAME if resuming else None, start)
+        with recorded_failure([seed_run]), matmul_precision(cfg.train.get("matmul_precision", "highest")):
+            note_precision([seed_run])  # training's float32 products as configured; every rollout's are IEEE
+            pretrain(seed_run)
+            return train_one(seed_run)
     finally:
         release_run_dir(run_dir)
 
 
-def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
+def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: float) -> SeedRun:
+    """Input of Algorithm 1 for one seed: D_S, D_P, D_U and D_0 in their buffers, the evaluator, the logger, and
+    ``results.json`` (or, resuming from ``checkpoint``, its state and results)."""
     torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))
     config_yaml = settings_yaml(cfg)
     state = None
-    if resuming:  # the checkpoint of the last evaluation, made with the same settings
-        state = load_checkpoint(run_dir / CHECKPOINT_NAME)
+    if checkpoint is not None:  # the checkpoint of an evaluation, made with the same settings
+        state = load_checkpoint(checkpoint)
         differ = settings_differ(state["config_yaml"], config_yaml)
         if differ:
             raise CheckpointError(
@@ -236,177 +210,218 @@ def _run(cfg: DictConfig, run_dir: Path, resuming: bool, start: float) -> dict:
         if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
             results["tracking"] = tracking
     write_json(run_dir / "results.json", results)
-
-    try:  # training's float32 products as configured (the data are ready; every rollout computes IEEE products)
-        pools = segment_pools(data.metadata) if "segments" in data.metadata else None
-        with matmul_precision(train.get("matmul_precision", "highest")):
-            results["matmul_precision"] = torch.get_float32_matmul_precision()
-            results["matmul_relative_error"] = matmul_check()  # as this machine computes them
-            return _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start, state)
-    except BaseException as err:  # keep what was done, say why it stopped, re-raise
-        results["status"] = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
-        results["error"] = f"{type(err).__name__}: {err}"
-        write_json(run_dir / "results.json", results)
-        raise
+    seed_run = SeedRun(cfg, run_dir, results, buffers, evaluator, logger, norm, data.metadata, state, start)
+    seed_run.random_state = torch.get_rng_state()
+    return seed_run
 
 
-def performant_support(buffers, pools) -> dict | None:
-    """The support estimate on D_P against the true cost (``None`` where the algorithm annotated none)."""
-    if "performant" not in buffers.roles:
-        return None
-    performant = buffers["performant"].storage[:]
-    if "safe_support" not in performant.keys():
-        return None
-    groups = source_masks(performant["episode"], pools)
-    return support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
-
-
-def _train(cfg, run_dir, results, buffers, evaluator, logger, norm, pools, start, state) -> dict:
-    task, train, config_hash = get_env_task(cfg.task.env_id), cfg.train, results["config_hash"]
-    obs_dim, act_dim = task.observation_dim, task.action_dim
-
-    # Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U).
+def pretrain(seed_run: SeedRun) -> None:
+    """Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U), from the seed's own
+    random stream. A resumed run does it again, deterministically, and checks that it got the same (no second
+    log rows)."""
+    cfg, results, buffers, state = seed_run.cfg, seed_run.results, seed_run.buffers, seed_run.state
+    task = get_env_task(cfg.task.env_id)
+    torch.set_rng_state(seed_run.random_state)
+    pools = segment_pools(seed_run.metadata) if "segments" in seed_run.metadata else None
     # (the constraint, the dataset's episode-cost threshold over the task's horizon, is read by COptiDICE only)
-    # A resumed run does it again, deterministically, and checks that it got the same (no second log rows).
     training = ALGORITHMS[cfg.algo.name](
         cfg.algo,
         buffers,
-        obs_dim,
-        act_dim,
-        constraint=EpisodeConstraint(evaluator.cost_threshold, task.episode_length),
-        logger=logger if state is None else None,
+        task.observation_dim,
+        task.action_dim,
+        constraint=EpisodeConstraint(seed_run.evaluator.cost_threshold, task.episode_length),
+        logger=seed_run.logger if state is None else None,
         progress=cfg.progress,
     )
-    training.observation_norm = norm
+    training.observation_norm = seed_run.norm
     fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
     if state is not None and fingerprint != state["pretraining"]:
         raise CheckpointError(
-            f"{run_dir}: pre-training did not reproduce the run's (another machine, library version or "
+            f"{seed_run.run_dir}: pre-training did not reproduce the run's (another machine, library version or "
             "dataset file?), so it cannot continue exactly; start a new run"
         )
     if state is None:
-        results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - start)
+        results.update(
+            diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - seed_run.start
+        )
     # Diagnostics (never read by training): D_P's support estimate once, and a fixed subsample of the DICE
     # role on which (nu, lambda) are examined at every evaluation.
     support = performant_support(buffers, pools)
     if support is not None:
         results["performant_support"] = support
+    extras = {"pools": pools, "support": support}
     if training.dice is not None:
-        probe = subsample(buffers[training.dice_role].storage[:], seed=int(cfg.seed))
-        probe_init = buffers["init"].storage[:]
+        extras["probe"] = subsample(buffers[training.dice_role].storage[:], seed=int(cfg.seed))
+        extras["probe_init"] = buffers["init"].storage[:]
+    seed_run.training, seed_run.fingerprint, seed_run.extras = training, fingerprint, extras
+    seed_run.random_state = torch.get_rng_state()  # where the main stage starts drawing
 
-    # Optimise the main stage with the TorchRL Trainer; evaluate every eval_interval steps.
-    checkpoints = run_dir / "checkpoints"
-    total, interval = int(train.steps), int(train.eval_interval)
-    results["status"] = "training"
-    train_start = time.perf_counter() - (0.0 if state is None else state["train_seconds"])
-    start -= 0.0 if state is None else state["total_seconds"]
 
-    def evaluate(batch) -> dict | None:
+def train_one(seed_run: SeedRun) -> dict:
+    """Optimise the main stage with the TorchRL Trainer, evaluating every ``train.eval_interval`` steps."""
+    cfg, training, train = seed_run.cfg, seed_run.training, seed_run.cfg.train
+    seed_run.results["status"] = "training"
+    train_start = main_stage_clock(seed_run)
+
+    def evaluate_now(batch) -> dict | None:
         step = trainer.collected_frames
-        if step % interval and step < total:
+        if not evaluation_due(step, cfg):
             return None
-        evaluation_start = time.perf_counter()
-        with training.policy() as policy:
-            result = evaluator(policy, step)
-            if train.checkpoint:
-                save_policy(
-                    checkpoints / "policy.pt",
-                    policy,
-                    env_id=task.env_id,
-                    distribution=cfg.algo.distribution,
-                    info={"step": step, "algo": cfg.algo.name, "config_hash": config_hash},
-                )
-        if training.dice is not None:
-            dice = dice_diagnostics(training.dice, probe, probe_init, role=training.dice_role, pools=pools)
-            result["dice"] = summary_scalars(dice)
-            results.update(dice_diagnostics=dice, dice_report=explain(dice, support))
-            if logger is not None:
-                for key, value in result["dice"].items():
-                    logger.log_scalar(key, value, step=step)
-        result["seconds"] = time.perf_counter() - train_start
-        result["eval_seconds"] = time.perf_counter() - evaluation_start  # rollouts, policy file, diagnostics
+        result = evaluate(seed_run, step, train_start)
         trainer.progress.note(
             f"step {step}: feasible return {result['normalized_feasible_return']:.2f}, "
             f"cost {result['normalized_cost']:.2f}"
         )
-        results["evaluations"].append(result)
-        write_json(run_dir / "results.json", results)
         return {f"eval/{key}": result[key] for key in METRICS}
 
-    def checkpoint(batch) -> None:
-        """After the evaluation and its log rows: everything a resumed run needs to continue from here."""
-        step = trainer.collected_frames
-        if not train.checkpoint or not results["evaluations"] or results["evaluations"][-1]["step"] != step:
-            return
-        save_checkpoint(
-            run_dir / CHECKPOINT_NAME,
-            {
-                "step": step,
-                "config_yaml": (run_dir / "config.yaml").read_text(),
-                "trainer": trainer.state_dict(),
-                "stepper": training.stepper.state_dict(),
-                "rng": rng_state(buffers),
-                "results": results,
-                "pretraining": fingerprint,
-                "csv_rows": csv_row_counts(run_dir / "logs"),
-                "train_seconds": time.perf_counter() - train_start,
-                "total_seconds": time.perf_counter() - start,
-            },
-        )
-        write_lock(run_dir)  # heartbeat
+    def checkpoint(batch) -> None:  # runs after the Trainer has logged the evaluation
+        step, evaluations = trainer.collected_frames, seed_run.results["evaluations"]
+        if train.checkpoint and evaluations and evaluations[-1]["step"] == step:
+            save_state(seed_run, step, trainer.state_dict(), rng_state(seed_run.buffers), train_start)
 
     if train.compile:  # the whole update as one compiled graph; says so and runs eagerly where it cannot
         training.stepper = CompiledStepper.from_stepper(training.stepper)
     trainer = offline_trainer(
         training.stepper,
-        buffers.sample,
-        total_steps=total,
-        steps_per_batch=math.gcd(interval, total, 100),
-        logger=logger,
+        seed_run.buffers.sample,
+        total_steps=int(train.steps),
+        steps_per_batch=math.gcd(int(train.eval_interval), int(train.steps), 100),
+        logger=seed_run.logger,
         log_interval=int(train.log_interval),
         progress_bar=cfg.progress,
         progress_label=f"training {cfg.algo.name}",
     )
-    trainer.register_op("post_steps_log", evaluate)
-    trainer.register_op("post_steps_log", checkpoint)  # runs after the Trainer has logged the evaluation
-    metadata = {"task": task.env_id, "algo": cfg.algo.name, "seed": cfg.seed, "config_hash": config_hash}
-    mcap = dict(path=run_dir / "rollouts.mcap", cost_threshold=evaluator.cost_threshold, metadata=metadata)
+    trainer.register_op("post_steps_log", evaluate_now)
+    trainer.register_op("post_steps_log", checkpoint)
+    state = seed_run.state
     if state is not None:  # continue exactly where the checkpoint was taken
         trainer.load_state_dict(state["trainer"])
         training.stepper.load_state_dict(state["stepper"])
-        set_rng_state(state["rng"], buffers)
-    with RolloutWriter(**mcap) if state is None else continue_rollouts(**mcap, until_step=state["step"]) as w:
-        evaluator.writer = w  # every evaluation episode goes to the MCAP file, flushed per episode
+        set_rng_state(state["rng"], seed_run.buffers)
+    else:
+        torch.set_rng_state(seed_run.random_state)
+    with rollout_writer(seed_run) as writer:
+        seed_run.evaluator.writer = (
+            writer  # every evaluation episode goes to the MCAP file, flushed per episode
+        )
         trainer.train()
-
-    # Output: results.json with the aggregate, and a small summary table.
-    last = min(int(train.last_evaluations), len(results["evaluations"]))
-    results.update(
-        status="finished",
-        aggregate=aggregate(results["evaluations"], last),
-        last_evaluations=last,
-        update_step="compiled" if getattr(training.stepper, "compiled", False) else "eager",
-        train_seconds=time.perf_counter() - train_start,
-        total_seconds=time.perf_counter() - start,
+    return finish(
+        seed_run, "compiled" if getattr(training.stepper, "compiled", False) else "eager", train_start
     )
-    write_json(run_dir / "results.json", results)
-    return results
 
 
-def summary_table(results: dict) -> str:
-    """The final evaluation and the aggregate of the main metrics, as markdown."""
-    final = results["evaluations"][-1]
-    lines = [
-        f"{results['algo']} on {results['dataset']} (seed {results['seed']}), {final['step']} steps, "
-        f"{results['total_seconds']:.0f} s",
-        "",
-        f"| metric | final evaluation | mean of last {results['last_evaluations']} |",
-        "|---|---|---|",
-    ]
-    for key in ("normalized_feasible_return", "normalized_cost", "normalized_return", "return", "cost"):
-        lines.append(f"| {key} | {final[key]:.3f} | {results['aggregate'][key]:.3f} |")
-    return "\n".join(lines)
+def seed_settings(cfg: DictConfig, seed: int) -> DictConfig:
+    """The settings of seed ``seed`` of a ``seeds=[...]`` run: the single-seed run's (``seed=<seed>``)."""
+    seed_cfg = cfg.copy()
+    with open_dict(seed_cfg):
+        seed_cfg.seed, seed_cfg.seeds = int(seed), None
+    return seed_cfg
+
+
+def run_seeds(cfg: DictConfig, run_dir: Path, seeds: list[int], start: float) -> list[dict]:
+    """``seeds=[...]``: every seed's run in ``run_dir/seed<k>`` (the files of a single-seed run, its settings),
+    pre-trained one after another, the main stages trained at once by one :class:`VectorizedStepper`."""
+    (run_dir / "config.yaml").write_text(settings_yaml(cfg))
+    claimed, resuming = [], []
+    try:
+        for seed in seeds:
+            claimed.append(run_dir / f"seed{seed}")
+            resuming.append(claim_run_dir(claimed[-1], resume=cfg.get("resume", False)))
+        checkpoints = common_checkpoints(claimed, resuming)  # the last step every seed can continue from
+        runs = [
+            open_run(seed_settings(cfg, seed), seed_dir, checkpoint, start)
+            for seed, seed_dir, checkpoint in zip(seeds, claimed, checkpoints, strict=True)
+        ]
+        with recorded_failure(runs), matmul_precision(cfg.train.get("matmul_precision", "highest")):
+            note_precision(runs)
+            for seed_run in runs:
+                pretrain(seed_run)
+            return train_seeds(runs)
+    finally:
+        for seed_dir in claimed:
+            release_run_dir(seed_dir)
+
+
+def train_seeds(runs: list[SeedRun]) -> list[dict]:
+    """The main stage of every seed at once: one Trainer, one vmapped update; each seed evaluated, logged and
+    checkpointed as its own run."""
+    cfg, train = runs[0].cfg, runs[0].cfg.train
+    for seed_run in runs:
+        seed_run.results["status"] = "training"
+    starts = [main_stage_clock(seed_run) for seed_run in runs]
+    seeds = [int(seed_run.cfg.seed) for seed_run in runs]
+    for seed_run in runs:
+        if seed_run.state is not None:  # every seed where its checkpoint was taken
+            seed_run.training.stepper.load_state_dict(seed_run.state["stepper"])
+            seed_run.buffers.set_rng_state(seed_run.state["rng"]["buffers"])
+            seed_run.random_state = seed_run.state["rng"]["torch"]
+    stepper = VectorizedStepper(
+        [r.training.stepper for r in runs],
+        [r.random_state for r in runs],
+        seeds=seeds,
+        compile=bool(train.compile),
+    )
+    trainer = offline_trainer(
+        stepper,
+        lambda: stepper.batch([seed_run.buffers.sample() for seed_run in runs]),
+        total_steps=int(train.steps),
+        steps_per_batch=math.gcd(int(train.eval_interval), int(train.steps), 100),
+        progress_bar=cfg.progress,
+        progress_label=f"training {cfg.algo.name}, {len(runs)} seeds",
+    )
+
+    def log_losses(optim_steps: int, losses) -> None:  # each seed's averages into its own logger
+        step, interval = trainer.collected_frames, int(train.log_interval)
+        if losses is None or step // interval == (step - trainer.optim_steps_per_batch) // interval:
+            return
+        for i, seed_run in enumerate(runs):
+            if seed_run.logger is not None:
+                for key, value in losses.items():
+                    seed_run.logger.log_scalar(key, float(value[i]), step=step)
+
+    def evaluate_now(batch) -> None:
+        step = trainer.collected_frames
+        if not evaluation_due(step, cfg):
+            return
+        stepper.sync()  # every seed's stepper holds its networks and optimiser states again
+        results = [evaluate(seed_run, step, t0) for seed_run, t0 in zip(runs, starts, strict=True)]
+        for seed_run, result in zip(runs, results, strict=True):
+            if seed_run.logger is not None:
+                for key in METRICS:
+                    seed_run.logger.log_scalar(f"eval/{key}", result[key], step=step)
+        if train.checkpoint:
+            keep_previous_checkpoints(
+                [seed_run.run_dir for seed_run in runs]
+            )  # a kill while saving loses none
+            whole = trainer.state_dict()
+            for i, (seed_run, t0) in enumerate(zip(runs, starts, strict=True)):
+                own = seed_run.training.stepper
+                state = whole | {  # the trainer state of this seed's single-seed run
+                    "loss_module": nn.ModuleDict(own.losses).state_dict(),
+                    "optimization_stepper": own.state_dict(),
+                }
+                random = {"torch": stepper.rng_states[i][0], "buffers": seed_run.buffers.rng_state()}
+                save_state(seed_run, step, state, random, t0)
+        mean = {key: sum(r[key] for r in results) / len(results) for key in METRICS}
+        trainer.progress.note(
+            f"step {step}: feasible return {mean['normalized_feasible_return']:.2f}, "
+            f"cost {mean['normalized_cost']:.2f} (mean of {len(runs)} seeds)"
+        )
+
+    trainer.register_op("post_optim_complete_log", log_losses)
+    trainer.register_op("post_steps_log", evaluate_now)
+    if runs[0].state is not None:  # the Trainer's counters where the checkpoints were taken
+        trainer.load_state_dict(
+            runs[0].state["trainer"]
+            | {"loss_module": trainer.loss_module.state_dict(), "optimization_stepper": stepper.state_dict()}
+        )
+    with contextlib.ExitStack() as stack:
+        for seed_run in runs:
+            seed_run.evaluator.writer = stack.enter_context(rollout_writer(seed_run))
+        trainer.train()
+    stepper.sync()
+    update_step = "vectorised, compiled" if stepper.compiled else "vectorised, eager"
+    return [finish(seed_run, update_step, t0) for seed_run, t0 in zip(runs, starts, strict=True)]
 
 
 #: Errors that are the user's to fix (a setting, a file, a run directory): one message, no traceback
@@ -425,9 +440,10 @@ def main(cfg: DictConfig) -> None:
             raise
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
-    log.info(summary_table(results))
-    if "dice_report" in results:
-        log.info(f"\n{results['dice_report']}")
+    for one in results if isinstance(results, list) else [results]:
+        log.info(summary_table(one))
+        if "dice_report" in one:
+            log.info(f"\n{one['dice_report']}")
     log.info(f"\nrun directory: {run_dir}")
 
 

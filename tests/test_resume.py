@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -53,9 +54,9 @@ def _episodes_on_disk(run_dir: Path) -> int:
         return 0
 
 
-def _kill_when(dataset, run_dir, condition) -> None:
+def _kill_when(dataset, run_dir, condition, *overrides) -> None:
     proc = subprocess.Popen(
-        _args(dataset, run_dir), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT
+        _args(dataset, run_dir, *overrides), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT
     )
     try:
         deadline = time.monotonic() + 240
@@ -131,6 +132,56 @@ def test_a_run_killed_mid_evaluation_resumes_bit_exactly(tmp_path, tiny_pc1_data
     assert _episodes_on_disk(run_dir) > 2 * _evaluations(run_dir)
     _run(tiny_pc1_dataset, run_dir, "resume=auto")
     _same_run(uninterrupted, run_dir)
+
+
+def test_seeds_run_each_seed_as_its_own_run_and_resume_bit_exactly(tmp_path, tiny_pc1_dataset, uninterrupted):
+    """``seeds=[0,1]``: each seed's files, settings and pre-training are its single run's, its main stage the
+    same up to float rounding (one vmapped update). Killed between its seeds' checkpoints, it continues from the
+    last step both seeds have (seed 0's previous checkpoint) and ends as the uninterrupted run."""
+    seeds = ["seeds=[0,1]", "train.steps=400"]
+    full = tmp_path / "full"
+    _run(tiny_pc1_dataset, full, *seeds)
+    alone = json.loads((uninterrupted / "results.json").read_text())  # seed 0 alone, 600 steps
+    for seed in (0, 1):
+        results = json.loads((full / f"seed{seed}" / "results.json").read_text())
+        assert results["status"] == "finished" and results["seed"] == seed
+        assert results["update_step"] == "vectorised, eager"  # the smoke preset does not compile
+        assert [e["step"] for e in results["evaluations"]] == [100, 200, 300, 400]
+        assert len(_plain_mcap_episodes(full / f"seed{seed}" / "rollouts.mcap")) == 8
+        assert list((full / f"seed{seed}" / "logs").rglob("dice.loss_nu.csv"))
+        config = (full / f"seed{seed}" / "config.yaml").read_text()
+        assert f"\nseed: {seed}\n" in config and "seeds" not in config  # the single run's settings
+    seed0 = json.loads((full / "seed0" / "results.json").read_text())
+    assert seed0["diagnostics"] == alone["diagnostics"] and seed0["data"] == alone["data"]
+    # the main stage: the same draws, another graph (float rounding, which Adam's first steps scale up to the
+    # learning rate; tests/trainers/test_vectorized.py compares steps to 1e-4 with SGD)
+    first, first_alone = seed0["evaluations"][0]["dice"], alone["evaluations"][0]["dice"]
+    assert first["dice/spread_nu"] == pytest.approx(first_alone["dice/spread_nu"], rel=2e-2)
+
+    killed = tmp_path / "killed"
+    saved = killed / "seed1" / "checkpoints"
+    _kill_when(
+        tiny_pc1_dataset,
+        killed,
+        lambda d: (saved / "training_state.pt").is_file() and _step(saved / "training_state.pt") == 300,
+        *seeds,
+    )
+    # as if killed between the two seeds' checkpoints of step 300: seed 1's is still the one of step 200
+    shutil.copyfile(saved / "training_state.previous.pt", saved / "training_state.pt")
+    assert _step(saved / "training_state.pt") == 200
+    _run(tiny_pc1_dataset, killed, *seeds, "resume=true")
+    assert json.loads((killed / "seed0" / "results.json").read_text())["resumed_at"] == [200]
+    for seed in (0, 1):
+        _same_run(full / f"seed{seed}", killed / f"seed{seed}")
+
+
+def _step(checkpoint: Path) -> int | None:
+    from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint
+
+    try:
+        return int(load_checkpoint(checkpoint)["step"])
+    except CheckpointError:  # being replaced
+        return None
 
 
 def test_resume_refuses_other_settings_and_a_damaged_checkpoint(tmp_path, tiny_pc1_dataset):

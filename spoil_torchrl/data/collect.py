@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -83,6 +84,7 @@ def rollout(
     progress: bool = True,
     desc: str | None = None,
     bar: tqdm | None = None,
+    record: Callable[[Any], np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """Run ``episodes`` episodes of ``policy`` (``None``: uniform random actions) and return DSRL arrays.
 
@@ -95,6 +97,9 @@ def rollout(
         deterministic: take the policy's deterministic action (evaluation) instead of sampling it.
         progress, desc: a progress bar of its own, labelled ``desc``;
         bar: or advance this (the caller's) bar instead, showing ``desc`` beside it (one bar over many calls).
+        record: called with the environment before each step; its results, stacked, are returned as
+            ``"recorded"`` (one row per transition), e.g. the agent's pose for the rollout file
+            (:func:`~spoil_torchrl.eval.env_scene.agent_pose`).
 
     The episodes depend on these arguments only: the rollout draws from its own random stream and computes the
     policy's float32 products in IEEE precision whatever the caller's :func:`torch.set_float32_matmul_precision`
@@ -149,9 +154,19 @@ def rollout(
                 actions = np.clip(policy(td)["action"].cpu().numpy(), space.low, space.high)
             still = []
             for j, i in enumerate(active):
+                seen = None if record is None else record(envs[i])
                 next_obs, reward, terminated, truncated, info = envs[i].step(actions[j])
                 steps[i].append(
-                    (batch[j], next_obs, actions[j], reward, float(info["cost"][0]), terminated, truncated)
+                    (
+                        batch[j],
+                        next_obs,
+                        actions[j],
+                        reward,
+                        float(info["cost"][0]),
+                        terminated,
+                        truncated,
+                        seen,
+                    )
                 )
                 if terminated or truncated:
                     finished.append(steps[i])
@@ -180,6 +195,7 @@ def rollout(
         "costs": np.asarray(columns[4], dtype=np.float32),
         "terminals": np.asarray(columns[5], dtype=bool),
         "timeouts": np.asarray(columns[6], dtype=bool),
+        **({} if record is None else {"recorded": np.stack(columns[7])}),
     }
 
 

@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
-from spoil_torchrl.eval.env_scene import make_render_env, replay_episodes, task_view
+from spoil_torchrl.eval.env_scene import agent_pose, make_render_env, replay_episodes, task_view
 from spoil_torchrl.eval.mcap_writer import RolloutWriter
 from spoil_torchrl.eval.metrics import episode_metrics
 
@@ -81,9 +81,10 @@ class Evaluator:
 
     In the file, steps are logged on simulation time (the task's control timestep), each episode starts with
     the task's constraint geometry (``/eval/scene``), and with ``poses`` every step carries the agent's pose
-    (``/tf``), with ``frames`` a rendered JPEG frame (``/eval/camera``). Poses and frames come from replaying
-    the episodes' actions (:func:`~spoil_torchrl.eval.env_scene.replay_episodes`), so the metrics' rollout
-    is the same with or without them.
+    (``/tf``), with ``frames`` a rendered JPEG frame (``/eval/camera``). Poses are read from the simulator
+    during the rollout (reading does not change it); with frames, poses and frames come from replaying the
+    episodes' actions in a rendering environment (:func:`~spoil_torchrl.eval.env_scene.replay_episodes`), so
+    the metrics' rollout is the same with or without them.
 
     Args:
         env_id: task of :data:`spoil_torchrl.tasks.ENV_TASKS`.
@@ -132,10 +133,11 @@ class Evaluator:
 
     def __call__(self, policy: ProbabilisticActor, step: int = 0) -> dict:
         """Evaluate ``policy``; returns ``{"step", <metric>: mean over episodes, "episodes": per-episode lists}``."""
-        from spoil_torchrl.data.collect import rollout
+        from spoil_torchrl.data.collect import episode_bounds, rollout
 
         was_training = policy.training
         policy.eval()
+        record_poses = self.writer is not None and self.poses and not self.frames
         try:
             arrays = rollout(
                 self.env_id,
@@ -145,15 +147,19 @@ class Evaluator:
                 num_envs=self.num_envs,
                 deterministic=True,
                 progress=False,
+                record=agent_pose if record_poses else None,  # frames need the replay's rendering instead
             )
         finally:
             policy.train(was_training)
+        poses = arrays.pop("recorded", None)
         padded = pad_episodes(arrays)
         metrics = episode_metrics(padded, self.cost_threshold, return_range=self.return_range)
         if self.writer is not None:
             view = task_view(self.env_id)
-            poses = frames = [None] * padded.shape[0]
-            if self.poses or self.frames:
+            frames = [None] * padded.shape[0]
+            if poses is not None:  # recorded during the rollout, one row per step
+                poses = np.split(poses, episode_bounds(arrays)[1][:-1])
+            elif self.poses or self.frames:
                 poses, frames = replay_episodes(
                     self.env_id,
                     arrays,
@@ -169,7 +175,7 @@ class Evaluator:
                     evaluation_step=step,
                     dt=view.dt,
                     scene=view.scene,
-                    poses=poses[e] if self.poses else None,
+                    poses=poses[e] if self.poses and poses is not None else None,
                     frames=frames[e],
                 )
         result = {"step": int(step)}

@@ -266,15 +266,20 @@ class SafeDICELoss(StateValues, LossModule):
         weights: torch.Tensor,
         probability: torch.Tensor,
         reward: torch.Tensor,
+        alpha: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
         """The detached diagnostics output beside ``loss_nu`` (see the class docstring), from nu, the advantage,
-        its log weights (:func:`safedice_log_weight`) and their self-normalised weights, and the reward."""
+        its log weights (:func:`safedice_log_weight`) and their self-normalised weights, and the reward.
+        ``alpha`` (a 0-d tensor) stands in for the loss's own (a compiled step of several seeds passes each
+        seed's)."""
         with torch.no_grad():
             dtype = advantage.dtype
+            alpha = torch.tensor(self.alpha, device=advantage.device) if alpha is None else alpha
+            alpha = alpha.to(dtype)
             return {
-                "alpha": torch.tensor(self.alpha, dtype=dtype, device=advantage.device),
+                "alpha": alpha,
                 "reward_mean": reward.mean(),
-                "clipped_fraction": (probability > 1.0 / (1.0 + self.alpha)).to(dtype).mean(),
+                "clipped_fraction": (probability > 1.0 / (1.0 + alpha)).to(dtype).mean(),
                 **weight_diagnostics(log_weights, weights),
                 "nu_init": init_nu.detach().mean(),
                 "advantage_mean": advantage.detach().mean(),

@@ -113,6 +113,17 @@ def use_fused_adam(optimizers) -> None:
         optim.defaults.update(fused=True, foreach=False)
 
 
+def warn_not_compiled(what: str, err: Exception) -> None:
+    """Say once, in one line, that ``what`` did not compile (the error's type and first line) and runs eagerly."""
+    text = str(err).strip()
+    log.warning(
+        "train.compile: %s did not compile (%s: %s); it runs eagerly",
+        what,
+        type(err).__name__,
+        text.splitlines()[0] if text else "",
+    )
+
+
 _STEPPERS = itertools.count()
 
 
@@ -137,12 +148,14 @@ def _with_own_code(fn: Callable, name: str) -> Callable:
     return types.FunctionType(code, call.__globals__, name, None, call.__closure__)
 
 
-def _rng_state(device: torch.device) -> tuple:
-    """The generators a step may draw from: the CPU's, and the GPU's when the parameters live on one."""
+def random_streams(device: torch.device) -> tuple:
+    """The state of the generators a step may draw from: the CPU's, and the GPU's when the parameters live on
+    one (``None`` otherwise)."""
     return torch.get_rng_state(), torch.cuda.get_rng_state(device) if device.type == "cuda" else None
 
 
-def _set_rng_state(device: torch.device, state: tuple) -> None:
+def set_random_streams(device: torch.device, state: tuple) -> None:
+    """Restore what :func:`random_streams` returned."""
     torch.set_rng_state(state[0])
     if state[1] is not None:
         torch.cuda.set_rng_state(state[1], device)
@@ -215,7 +228,7 @@ class CompiledStepper(MultiLossStepper):
             return super().step(trainer, sub_batch)
         parameters = self._parameters()
         device = next(p for ps in parameters.values() for p in ps.values()).device
-        rng = _rng_state(device)
+        rng = random_streams(device)
         inputs = {name: form.inputs(sub_batch) for name, form in self._forms.items()}
         try:
             if self._fn is None:
@@ -224,13 +237,9 @@ class CompiledStepper(MultiLossStepper):
         except Exception as err:
             if self.compiled:
                 raise
-            log.warning(
-                "train.compile: the update step did not compile (%s: %s); it runs eagerly",
-                type(err).__name__,
-                str(err).strip().splitlines()[0] if str(err).strip() else "",
-            )
+            warn_not_compiled("the update step", err)
             self._forms, self._fn = None, None
-            _set_rng_state(device, rng)
+            set_random_streams(device, rng)
             return super().step(trainer, sub_batch)
         if not self.compiled:  # the step compiles: from now on Adam runs as one fused kernel too
             use_fused_adam(self.optimizers)

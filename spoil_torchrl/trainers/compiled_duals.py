@@ -182,7 +182,11 @@ class CompiledDemoDICE(CompiledDual):
 
 class CompiledSafeDICE(CompiledDual):
     """The compiled form of :class:`~spoil_torchrl.objectives.SafeDICELoss`: ``loss_nu`` (with the gradient
-    penalty), its diagnostics, and the self-normalised weights of D_U."""
+    penalty), its diagnostics, and the self-normalised weights of D_U. The reward (a function of the data and of
+    alpha and the standardisation, which the recipe derives from each seed's discriminator) is computed with the
+    inputs, so seeds with different values share one vectorised step (``per_seed``)."""
+
+    per_seed = ("alpha", "reward_mean", "reward_std")
 
     def __init__(self, loss: SafeDICELoss) -> None:
         self.role = loss.tensor_keys.unlabeled
@@ -191,21 +195,26 @@ class CompiledSafeDICE(CompiledDual):
     def inputs(self, batch: TensorDictBase) -> Tensors:
         data = get_role(batch, self.role)
         logit = data.get(self.loss.tensor_keys.logit).reshape(data.batch_size.numel())
-        return {**super().inputs(batch), "logit": logit}
+        dtype = next(iter(self.nu.params.values())).dtype
+        probability, reward = self.loss.reward(logit.detach().to(dtype))
+        alpha = torch.tensor(self.loss.alpha, dtype=dtype, device=logit.device)
+        return {**super().inputs(batch), "probability": probability, "reward": reward, "alpha": alpha}
 
     def __call__(
         self, params: Tensors, x: Tensors, produced: dict
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         init_nu, current_nu, next_nu, penalty = self.nu_terms(params, x)
         loss = self.loss
-        probability, reward = loss.reward(x["logit"].detach().to(current_nu.dtype))
+        probability, reward = x["probability"], x["reward"]
         advantage = dice_advantage(reward, current_nu, bellman_backup(next_nu, x["terminated"], loss.gamma))
         loss_nu = safedice_dual(init_nu, advantage, loss.gamma) + penalty
         with torch.no_grad():
             log_weights = safedice_log_weight(advantage.detach())
             weights = self_normalized_weights(log_weights)
         produced[next(iter(self.produces))] = weights
-        diagnostics = loss.diagnostics(init_nu, advantage, log_weights, weights, probability, reward)
+        diagnostics = loss.diagnostics(
+            init_nu, advantage, log_weights, weights, probability, reward, alpha=x["alpha"]
+        )
         return loss_nu, {"loss_nu": loss_nu, **diagnostics}
 
 

@@ -121,6 +121,10 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         Traceback (most recent call last):
         ...
         spoil_torchrl.trainers.settings.SettingsError: algo.kappa = 1.5: expected a quantile in (0, 1)
+        >>> check_settings({"seeds": [0, 1, 1]})
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.trainers.settings.SettingsError: seeds = [0, 1, 1]: expected null or a list of distinct integers >= 0
     """
     for key, check, expected in (
         ("seed", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
@@ -128,6 +132,14 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
     ):
         if key in cfg and not check(cfg[key]):
             raise SettingsError(f"{key} = {cfg[key]!r}: expected {expected}")
+    seeds = cfg.get("seeds")
+    if seeds is not None and not (
+        isinstance(seeds, (list, tuple))
+        and seeds
+        and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds)
+        and len(set(seeds)) == len(seeds)
+    ):
+        raise SettingsError(f"seeds = {seeds!r}: expected null or a list of distinct integers >= 0")
     for section in ("train", "algo"):
         if not isinstance(cfg.get(section), Mapping):
             continue

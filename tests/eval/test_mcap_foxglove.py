@@ -285,6 +285,24 @@ def test_evaluation_file_is_foxglove_ready(tmp_path, circle_policy):
 
 
 @needs_safety
+def test_poses_recorded_in_the_rollout_are_the_replays(circle_policy):
+    """An evaluation without frames reads the agent's pose during its rollout instead of replaying it."""
+    from spoil_torchrl.data.collect import episode_bounds, rollout
+    from spoil_torchrl.eval.env_scene import agent_pose, replay_episodes
+
+    arrays = rollout(
+        "SafetyPointCircle1-v0", circle_policy, 3, seed=4, num_envs=2, progress=False, record=agent_pose
+    )
+    recorded = np.split(arrays.pop("recorded"), episode_bounds(arrays)[1][:-1])
+    replayed, _ = replay_episodes("SafetyPointCircle1-v0", arrays, seed=4, num_envs=2)
+    assert [p.shape for p in recorded] == [p.shape for p in replayed] == [(500, 7)] * 3
+    for mine, theirs in zip(recorded, replayed, strict=True):
+        np.testing.assert_allclose(mine, theirs, rtol=0, atol=1e-9)
+    plain = rollout("SafetyPointCircle1-v0", circle_policy, 3, seed=4, num_envs=2, progress=False)
+    assert all(np.array_equal(plain[key], arrays[key]) for key in plain)  # recording changes nothing
+
+
+@needs_safety
 def test_rendered_frames(tmp_path, circle_policy):
     from spoil_torchrl.eval.env_scene import make_render_env, replay_episodes
 
