@@ -389,10 +389,8 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
             if seed_run.logger is not None:
                 for key in METRICS:
                     seed_run.logger.log_scalar(f"eval/{key}", result[key], step=step)
-        if train.checkpoint:
-            keep_previous_checkpoints(
-                [seed_run.run_dir for seed_run in runs]
-            )  # a kill while saving loses none
+        if train.checkpoint:  # a kill while they are written leaves each seed one of the step before
+            keep_previous_checkpoints([seed_run.run_dir for seed_run in runs])
             whole = trainer.state_dict()
             for i, (seed_run, t0) in enumerate(zip(runs, starts, strict=True)):
                 own = seed_run.training.stepper
