@@ -57,7 +57,7 @@ def matmul_check() -> float:
 @dataclass
 class SeedRun:
     """One seed's run: its settings, directory, data, evaluator, logger and ``results.json`` content, and, once
-    :func:`pretrain` has run, the algorithm's training (``training``) and the diagnostics' fixed inputs."""
+    the recipe has pre-trained it, the algorithm's training (``training``) and the diagnostics' fixed inputs."""
 
     cfg: DictConfig
     run_dir: Path

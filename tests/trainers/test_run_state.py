@@ -196,3 +196,29 @@ def test_a_requeued_cluster_job_takes_over_its_own_lock(tmp_path, monkeypatch):
     _results(tmp_path, "training")
     assert claim_run_dir(tmp_path, resume="auto") is False
     assert read_lock(tmp_path)["job"] == "slurm:4242:"
+
+
+def test_the_seeds_continue_from_the_last_step_they_all_have(tmp_path):
+    from spoil_torchrl.trainers.seed_run import (
+        PREVIOUS_CHECKPOINT,
+        common_checkpoints,
+        keep_previous_checkpoints,
+    )
+
+    seeds = [tmp_path / "seed0", tmp_path / "seed1"]
+    for step in (100, 200):  # two rounds of checkpoints, as a seeds=[...] run writes them
+        keep_previous_checkpoints(seeds)
+        for seed_dir in seeds:
+            save_checkpoint(seed_dir / CHECKPOINT_NAME, {"step": step})
+    keep_previous_checkpoints(seeds)  # the third round: killed after seed 0's checkpoint
+    save_checkpoint(seeds[0] / CHECKPOINT_NAME, {"step": 300})
+    chosen = common_checkpoints(seeds, [True, True])
+    assert chosen == [seeds[0] / PREVIOUS_CHECKPOINT, seeds[1] / CHECKPOINT_NAME]
+    assert [load_checkpoint(path)["step"] for path in chosen] == [200, 200]
+    assert common_checkpoints(seeds, [False, False]) == [None, None]
+    with pytest.raises(CheckpointError, match="no checkpoint to continue in .*seed1"):
+        common_checkpoints(seeds, [True, False])
+    save_checkpoint(seeds[1] / CHECKPOINT_NAME, {"step": 50})
+    save_checkpoint(seeds[1] / PREVIOUS_CHECKPOINT, {"step": 40})
+    with pytest.raises(CheckpointError, match="share no step .*resume each seed on its own"):
+        common_checkpoints(seeds, [True, True])
