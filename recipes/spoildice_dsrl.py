@@ -298,12 +298,10 @@ def train_one(seed_run: SeedRun) -> dict:
         trainer.load_state_dict(state["trainer"])
         training.stepper.load_state_dict(state["stepper"])
         set_rng_state(state["rng"], seed_run.buffers)
-    else:
-        torch.set_rng_state(seed_run.random_state)
-    with rollout_writer(seed_run) as writer:
-        seed_run.evaluator.writer = (
-            writer  # every evaluation episode goes to the MCAP file, flushed per episode
-        )
+    with rollout_writer(
+        seed_run
+    ) as writer:  # every evaluation episode into the MCAP file, flushed per episode
+        seed_run.evaluator.writer = writer
         trainer.train()
     return finish(
         seed_run, "compiled" if getattr(training.stepper, "compiled", False) else "eager", train_start
@@ -349,16 +347,10 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
     for seed_run in runs:
         seed_run.results["status"] = "training"
     starts = [main_stage_clock(seed_run) for seed_run in runs]
-    seeds = [int(seed_run.cfg.seed) for seed_run in runs]
-    for seed_run in runs:
-        if seed_run.state is not None:  # every seed where its checkpoint was taken
-            seed_run.training.stepper.load_state_dict(seed_run.state["stepper"])
-            seed_run.buffers.set_rng_state(seed_run.state["rng"]["buffers"])
-            seed_run.random_state = seed_run.state["rng"]["torch"]
     stepper = VectorizedStepper(
         [r.training.stepper for r in runs],
         [r.random_state for r in runs],
-        seeds=seeds,
+        seeds=[int(r.cfg.seed) for r in runs],
         compile=bool(train.compile),
     )
     trainer = offline_trainer(
@@ -408,11 +400,17 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
 
     trainer.register_op("post_optim_complete_log", log_losses)
     trainer.register_op("post_steps_log", evaluate_now)
-    if runs[0].state is not None:  # the Trainer's counters where the checkpoints were taken
+    if runs[0].state is not None:  # every seed, and the Trainer's counters, where the checkpoints were taken
+        seeds_state = {
+            "seeds": [r.state["stepper"] for r in runs],
+            "rng": [(r.state["rng"]["torch"], None) for r in runs],
+        }
         trainer.load_state_dict(
             runs[0].state["trainer"]
-            | {"loss_module": trainer.loss_module.state_dict(), "optimization_stepper": stepper.state_dict()}
+            | {"loss_module": trainer.loss_module.state_dict(), "optimization_stepper": seeds_state}
         )
+        for seed_run in runs:
+            seed_run.buffers.set_rng_state(seed_run.state["rng"]["buffers"])
     with contextlib.ExitStack() as stack:
         for seed_run in runs:
             seed_run.evaluator.writer = stack.enter_context(rollout_writer(seed_run))

@@ -151,15 +151,15 @@ class Evaluator:
             )
         finally:
             policy.train(was_training)
-        poses = arrays.pop("recorded", None)
+        recorded = arrays.pop("recorded", None)
         padded = pad_episodes(arrays)
         metrics = episode_metrics(padded, self.cost_threshold, return_range=self.return_range)
         if self.writer is not None:
             view = task_view(self.env_id)
-            frames = [None] * padded.shape[0]
-            if poses is not None:  # recorded during the rollout, one row per step
-                poses = np.split(poses, episode_bounds(arrays)[1][:-1])
-            elif self.poses or self.frames:
+            poses = frames = [None] * padded.shape[0]
+            if recorded is not None:  # one pose per step, recorded during the rollout
+                poses = np.split(recorded, episode_bounds(arrays)[1][:-1])
+            elif self.frames:
                 poses, frames = replay_episodes(
                     self.env_id,
                     arrays,
@@ -175,7 +175,7 @@ class Evaluator:
                     evaluation_step=step,
                     dt=view.dt,
                     scene=view.scene,
-                    poses=poses[e] if self.poses and poses is not None else None,
+                    poses=poses[e] if self.poses else None,
                     frames=frames[e],
                 )
         result = {"step": int(step)}

@@ -23,9 +23,12 @@ level, so neither a cached dataset nor an evaluation depends on it.
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Iterator
 
 import torch
+
+log = logging.getLogger(__name__)
 
 #: The levels of :func:`torch.set_float32_matmul_precision`, most exact first.
 MATMUL_PRECISIONS = ("highest", "high", "medium")
@@ -71,3 +74,16 @@ def matmul_relative_error(rows: int = 512, cells: int = 256) -> float:
     b = torch.randn(cells, cells, generator=generator)
     exact = a.double() @ b.double()
     return float(((a @ b).double() - exact).abs().max() / exact.abs().mean())
+
+
+def matmul_check() -> float:
+    """The relative error of float32 products at the run's matmul precision; a warning when they lose precision
+    (``train.matmul_precision=medium`` on a CPU whose oneDNN takes bfloat16 kernels, e.g. one with AMX)."""
+    error = matmul_relative_error()
+    if error > REDUCED_PRECISION_ERROR:
+        log.warning(
+            f"train.matmul_precision={torch.get_float32_matmul_precision()}: float32 products lose precision on "
+            f"this machine (relative error {error:.1e}: bfloat16 kernels); train.matmul_precision=highest keeps "
+            "them IEEE float32"
+        )
+    return error

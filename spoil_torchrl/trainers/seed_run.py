@@ -30,7 +30,7 @@ from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.trainers.algorithms import PolicyTraining
 from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from spoil_torchrl.trainers.precision import REDUCED_PRECISION_ERROR, matmul_relative_error
+from spoil_torchrl.trainers.precision import matmul_check
 from spoil_torchrl.trainers.resume import csv_row_counts
 from spoil_torchrl.trainers.run_dir import CHECKPOINT_NAME, write_lock
 from spoil_torchrl.trainers.run_results import aggregate, write_json
@@ -39,19 +39,6 @@ log = logging.getLogger(__name__)
 
 #: A seed's checkpoint before the last one, kept by a ``seeds=[...]`` run (relative to the seed's directory).
 PREVIOUS_CHECKPOINT = "checkpoints/training_state.previous.pt"
-
-
-def matmul_check() -> float:
-    """The relative error of float32 products at the run's matmul precision; a warning when they lose precision
-    (``train.matmul_precision=medium`` on a CPU whose oneDNN takes bfloat16 kernels, e.g. one with AMX)."""
-    error = matmul_relative_error()
-    if error > REDUCED_PRECISION_ERROR:
-        log.warning(
-            f"train.matmul_precision={torch.get_float32_matmul_precision()}: float32 products lose precision on "
-            f"this machine (relative error {error:.1e}: bfloat16 kernels); train.matmul_precision=highest keeps "
-            "them IEEE float32"
-        )
-    return error
 
 
 @dataclass

@@ -29,6 +29,10 @@ def _positive_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 1
 
 
+def _seed(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
 def _open_unit(value: Any) -> bool:
     return _number(value) and 0.0 < value < 1.0
 
@@ -127,7 +131,7 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         spoil_torchrl.trainers.settings.SettingsError: seeds = [0, 1, 1]: expected null or a list of distinct integers >= 0
     """
     for key, check, expected in (
-        ("seed", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+        ("seed", _seed, "an integer >= 0"),
         ("threads", _positive_int, "an integer >= 1"),
     ):
         if key in cfg and not check(cfg[key]):
@@ -136,7 +140,7 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
     if seeds is not None and not (
         isinstance(seeds, (list, tuple))
         and seeds
-        and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds)
+        and all(_seed(s) for s in seeds)
         and len(set(seeds)) == len(seeds)
     ):
         raise SettingsError(f"seeds = {seeds!r}: expected null or a list of distinct integers >= 0")

@@ -31,6 +31,7 @@ from spoil_torchrl.trainers.compiled import (
     _with_own_code,
     detached,
     random_streams,
+    set_gradients,
     set_random_streams,
     update_gradients,
     use_fused_adam,
@@ -216,11 +217,7 @@ class VectorizedStepper(MultiLossStepper):
         self.steppers = list(steppers)
         names = self.forms[0]
         self.params = {  # loss name -> parameter name -> stacked leaf [seeds, ...]
-            name: {
-                key: torch.stack([f[name].parameters()[key].detach() for f in self.forms])
-                for key in names[name].parameters()
-            }
-            for name in names
+            name: {key: self._seeds_values(name, key) for key in names[name].parameters()} for name in names
         }
         stacked_of = [  # per seed: id(the seed's parameter) -> the stacked parameter
             {
@@ -262,6 +259,10 @@ class VectorizedStepper(MultiLossStepper):
         self.compiled = False
         self._update = torch.vmap(update_gradients(names))
         self._fn = None
+
+    def _seeds_values(self, name: str, key: str) -> torch.Tensor:
+        """Parameter ``key`` of loss ``name`` of every seed's stepper, stacked along a leading seed dimension."""
+        return torch.stack([f[name].parameters()[key].detach() for f in self.forms])
 
     def _build(self):
         mode = self.mode or ("reduce-overhead" if self.device.type == "cuda" else None)
@@ -310,7 +311,7 @@ class VectorizedStepper(MultiLossStepper):
                 self._fn, self.compile = None, False  # eager from now on
         if self._fn is None:
             grads, (_, outputs) = self._update(*args)
-        self._apply_gradients(lambda: self._set_gradients(grads))
+        self._apply_gradients(lambda: set_gradients(self.params, grads))
         return TensorDict(
             {
                 f"{name}.{key}": value.detach().float()
@@ -321,11 +322,6 @@ class VectorizedStepper(MultiLossStepper):
             batch_size=[],
         )
 
-    def _set_gradients(self, grads) -> None:
-        for name, ps in self.params.items():
-            for key, p in ps.items():
-                p.grad = grads[name][key]
-
     def sync(self) -> None:
         """Write the stacked parameters and optimiser states back into every seed's stepper."""
         with torch.no_grad():
@@ -335,10 +331,6 @@ class VectorizedStepper(MultiLossStepper):
                         p.copy_(self.params[name][key][i])
         for o in self.stacked:
             o.write_to_seeds()
-
-    def seed_state_dict(self, index: int) -> dict[str, Any]:
-        """The state dict of seed ``index``'s stepper (after :meth:`sync`), as its single-seed run has it."""
-        return self.steppers[index].state_dict()
 
     def state_dict(self) -> dict[str, Any]:
         self.sync()
@@ -358,7 +350,7 @@ class VectorizedStepper(MultiLossStepper):
         with torch.no_grad():
             for name, ps in self.params.items():
                 for key, p in ps.items():
-                    p.copy_(torch.stack([f[name].parameters()[key].detach() for f in self.forms]))
+                    p.copy_(self._seeds_values(name, key))
         for o in self.stacked:
             o.load_from_seeds()
 
