@@ -57,6 +57,7 @@ from spoil_torchrl.data.prepare import prepare_dataset
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.eval.evaluator import METRICS
+from spoil_torchrl.eval.parallel import RolloutPool, available_cores
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import CompiledStepper, offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
@@ -90,6 +91,7 @@ from spoil_torchrl.trainers.seed_run import (
     note_precision,
     performant_support,
     recorded_failure,
+    rollout_job,
     rollout_writer,
     save_state,
 )
@@ -376,7 +378,11 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
         if not evaluation_due(step, cfg):
             return
         stepper.sync()  # every seed's stepper holds its networks and optimiser states again
-        results = [evaluate(seed_run, step, t0) for seed_run, t0 in zip(runs, starts, strict=True)]
+        rollouts = pool.map(rollout_job(seed_run) for seed_run in runs)  # on the spare cores too
+        results, started = [], time.perf_counter()
+        for seed_run, t0 in zip(runs, starts, strict=True):  # a seed's time: from the previous seed's end
+            results.append(evaluate(seed_run, step, t0, next(rollouts), started))
+            started = time.perf_counter()
         for seed_run, result in zip(runs, results, strict=True):
             if seed_run.logger is not None:
                 for key in METRICS:
@@ -414,6 +420,7 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
     with contextlib.ExitStack() as stack:
         for seed_run in runs:
             seed_run.evaluator.writer = stack.enter_context(rollout_writer(seed_run))
+        pool = stack.enter_context(RolloutPool(workers=min(len(runs), available_cores()) - 1))
         trainer.train()
     stepper.sync()
     update_step = "vectorised, compiled" if stepper.compiled else "vectorised, eager"

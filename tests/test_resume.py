@@ -151,6 +151,9 @@ def test_seeds_run_each_seed_as_its_own_run_and_resume_bit_exactly(tmp_path, tin
         assert list((full / f"seed{seed}" / "logs").rglob("dice.loss_nu.csv"))
         config = (full / f"seed{seed}" / "config.yaml").read_text()
         assert f"\nseed: {seed}\n" in config and "seeds" not in config  # the single run's settings
+        # its evaluations' episodes were rolled out in a worker process (seed 0) or here (seed 1), from a copy
+        # of the policy: evaluating the policy file it saved gives them again
+        _same_final_evaluation(full / f"seed{seed}", results)
     seed0 = json.loads((full / "seed0" / "results.json").read_text())
     assert seed0["diagnostics"] == alone["diagnostics"] and seed0["data"] == alone["data"]
     # the main stage: the same draws, another graph (float rounding, which Adam's first steps scale up to the
@@ -173,6 +176,27 @@ def test_seeds_run_each_seed_as_its_own_run_and_resume_bit_exactly(tmp_path, tin
     assert json.loads((killed / "seed0" / "results.json").read_text())["resumed_at"] == [200]
     for seed in (0, 1):
         _same_run(full / f"seed{seed}", killed / f"seed{seed}")
+
+
+def _same_final_evaluation(run_dir: Path, results: dict) -> None:
+    from omegaconf import OmegaConf
+
+    from spoil_torchrl.eval import Evaluator
+    from spoil_torchrl.experts import load_policy
+
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    policy, meta = load_policy(run_dir / "checkpoints" / "policy.pt")
+    assert meta["info"]["step"] == results["evaluations"][-1]["step"]
+    evaluator = Evaluator(
+        cfg.task.env_id,
+        cost_threshold=1.0,
+        return_range=(0.0, 1.0),
+        episodes=cfg.train.eval_episodes,
+        seed=10_000 + cfg.seed,  # the recipe's evaluation seed
+        num_envs=cfg.task.eval_num_envs,
+    )
+    again, last = evaluator(policy)["episodes"], results["evaluations"][-1]["episodes"]
+    assert (again["return"], again["cost"], again["length"]) == (last["return"], last["cost"], last["length"])
 
 
 def _step(checkpoint: Path) -> int | None:

@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from spoil_torchrl.data.hdf5 import write_dsrl_file
 from spoil_torchrl.tasks import get_env_task
-from spoil_torchrl.trainers.precision import matmul_precision
+from spoil_torchrl.trainers.precision import intra_op_threads, matmul_precision
 
 #: ``policy`` value of a :class:`Segment` that acts uniformly at random.
 RANDOM_POLICY = "random"
@@ -102,8 +102,10 @@ def rollout(
             (:func:`~spoil_torchrl.eval.env_scene.agent_pose`).
 
     The episodes depend on these arguments only: the rollout draws from its own random stream and computes the
-    policy's float32 products in IEEE precision whatever the caller's :func:`torch.set_float32_matmul_precision`
-    (a training's ``train.matmul_precision`` changes neither a generated dataset nor an evaluation).
+    policy's float32 products in IEEE precision on one thread, whatever the caller's
+    :func:`torch.set_float32_matmul_precision` and :func:`torch.set_num_threads` (a training's
+    ``train.matmul_precision`` and ``threads`` change neither a generated dataset nor an evaluation, and a
+    rollout in another process gives the same arrays).
 
     Returns:
         ``observations``, ``next_observations``, ``actions``, ``rewards``, ``costs`` (float32), ``terminals``,
@@ -132,10 +134,12 @@ def rollout(
     elif desc:
         bar.set_postfix_str(desc)
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    # The caller's random stream and float32 matmul precision (e.g. a training's) leave the episodes untouched.
+    # The caller's random stream, float32 matmul precision and threads (e.g. a training's) leave the episodes
+    # untouched.
     with (
         torch.random.fork_rng(devices=[]),
         matmul_precision("highest"),
+        intra_op_threads(1),
         torch.no_grad(),
         set_exploration_type(mode),
     ):

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 import torch
@@ -69,12 +71,43 @@ def pad_episodes(arrays: Mapping[str, np.ndarray]) -> TensorDict:
     )
 
 
+def evaluation_rollout(
+    env_id: str,
+    policy: ProbabilisticActor,
+    episodes: int,
+    *,
+    seed: int,
+    num_envs: int,
+    record: Callable[[Any], np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
+    """The deterministic episodes of an evaluation (:func:`spoil_torchrl.data.collect.rollout`), the policy in
+    eval mode meanwhile."""
+    from spoil_torchrl.data.collect import rollout
+
+    was_training = policy.training
+    policy.eval()
+    try:
+        return rollout(
+            env_id,
+            policy,
+            episodes,
+            seed=seed,
+            num_envs=num_envs,
+            deterministic=True,
+            progress=False,
+            record=record,
+        )
+    finally:
+        policy.train(was_training)
+
+
 class Evaluator:
     """Runs ``episodes`` deterministic episodes of a policy in ``env_id`` and reports the paper's metrics.
 
     Each call rolls the policy out (:func:`spoil_torchrl.data.collect.rollout` with the policy's deterministic
-    action, the same ``seed`` every time and, as every rollout, IEEE float32 products whatever the caller's
-    :func:`torch.set_float32_matmul_precision`, so that evaluations differ only by the policy), computes the per-episode
+    action, the same ``seed`` every time and, as every rollout, IEEE float32 products on one thread whatever the
+    caller's :func:`torch.set_float32_matmul_precision` and threads, so that evaluations differ only by the
+    policy), computes the per-episode
     metrics with :func:`~spoil_torchrl.eval.episode_metrics` (return, cost, feasible return and its strict
     variant, normalised return / feasible return / cost), writes every episode to ``writer`` (an MCAP
     :class:`~spoil_torchrl.eval.RolloutWriter`) when given, and returns the means over episodes.
@@ -133,24 +166,29 @@ class Evaluator:
 
     def __call__(self, policy: ProbabilisticActor, step: int = 0) -> dict:
         """Evaluate ``policy``; returns ``{"step", <metric>: mean over episodes, "episodes": per-episode lists}``."""
-        from spoil_torchrl.data.collect import episode_bounds, rollout
+        return self.report(self.rollout_job(policy)(), step)
 
-        was_training = policy.training
-        policy.eval()
+    def rollout_job(self, policy: ProbabilisticActor) -> functools.partial:
+        """The evaluation's rollout of ``policy`` as a picklable call (no argument; returns the DSRL arrays
+        :meth:`report` reads): run it here, or in another process
+        (:class:`~spoil_torchrl.eval.parallel.RolloutPool`) with a copy of the policy -- the arrays are the same.
+        """
         record_poses = self.writer is not None and self.poses and not self.frames
-        try:
-            arrays = rollout(
-                self.env_id,
-                policy,
-                self.episodes,
-                seed=self.seed,
-                num_envs=self.num_envs,
-                deterministic=True,
-                progress=False,
-                record=agent_pose if record_poses else None,  # frames need the replay's rendering instead
-            )
-        finally:
-            policy.train(was_training)
+        return functools.partial(
+            evaluation_rollout,
+            self.env_id,
+            policy,
+            self.episodes,
+            seed=self.seed,
+            num_envs=self.num_envs,
+            record=agent_pose if record_poses else None,  # frames need the replay's rendering instead
+        )
+
+    def report(self, arrays: dict[str, np.ndarray], step: int = 0) -> dict:
+        """The metrics of an evaluation's rollout (:meth:`rollout_job`), its episodes written to the writer."""
+        from spoil_torchrl.data.collect import episode_bounds
+
+        arrays = dict(arrays)
         recorded = arrays.pop("recorded", None)
         padded = pad_episodes(arrays)
         metrics = episode_metrics(padded, self.cost_threshold, return_range=self.return_range)

@@ -39,6 +39,30 @@ REDUCED_PRECISION_ERROR = 1e-4
 
 
 @contextlib.contextmanager
+def intra_op_threads(threads: int) -> Iterator[None]:
+    """Run the block with ``torch.set_num_threads(threads)``, restoring the previous number after.
+
+    A product's rounding may depend on how many threads compute it (on this project's CPUs a ``[10, 256] x
+    [256, 256]`` float32 product differs in the last bits between one and two threads), so code whose numbers must
+    not depend on the caller's ``threads`` runs at a fixed number.
+
+    Examples:
+        >>> before = torch.get_num_threads()
+        >>> with intra_op_threads(1):
+        ...     torch.get_num_threads()
+        1
+        >>> torch.get_num_threads() == before
+        True
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+@contextlib.contextmanager
 def matmul_precision(precision: str) -> Iterator[None]:
     """Run the block with ``torch.set_float32_matmul_precision(precision)``, restoring the previous level after.
 

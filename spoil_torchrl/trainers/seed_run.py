@@ -8,6 +8,7 @@ same way, alone or as one of the seeds of a ``seeds=[...]`` run: evaluate the po
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import os
 import time
@@ -27,6 +28,7 @@ from spoil_torchrl.eval.dice_diagnostics import (
     support_accuracy,
 )
 from spoil_torchrl.eval.mcap_resume import continue_rollouts
+from spoil_torchrl.eval.parallel import Job
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.trainers.algorithms import PolicyTraining
 from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -94,13 +96,32 @@ def performant_support(buffers, pools) -> dict | None:
     return support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
 
 
-def evaluate(seed_run: SeedRun, step: int, train_start: float) -> dict:
+def rollout_job(seed_run: SeedRun) -> Job:
+    """The evaluation rollout of the seed's current policy (a copy) as a job for a
+    :class:`~spoil_torchrl.eval.parallel.RolloutPool`."""
+    with seed_run.training.policy() as policy:
+        return seed_run.evaluator.rollout_job(copy.deepcopy(policy))
+
+
+def evaluate(
+    seed_run: SeedRun,
+    step: int,
+    train_start: float,
+    rollout: dict | None = None,
+    started: float | None = None,
+) -> dict:
     """Evaluate the seed's current policy in the task (episodes into its MCAP file), save its policy file and
-    the DICE diagnostics, and rewrite ``results.json``; returns the evaluation."""
+    the DICE diagnostics, and rewrite ``results.json``; returns the evaluation.
+
+    ``rollout``: the evaluation's episodes, when they were rolled out elsewhere (:func:`rollout_job`), else they
+    are rolled out here. ``started``: when the evaluation's time (``eval_seconds``) started, if before the call.
+    """
     cfg, results, training = seed_run.cfg, seed_run.results, seed_run.training
-    evaluation_start = time.perf_counter()
+    evaluation_start = time.perf_counter() if started is None else started
     with training.policy() as policy:
-        result = seed_run.evaluator(policy, step)
+        result = (
+            seed_run.evaluator(policy, step) if rollout is None else seed_run.evaluator.report(rollout, step)
+        )
         if cfg.train.checkpoint:
             save_policy(
                 seed_run.run_dir / "checkpoints" / "policy.pt",

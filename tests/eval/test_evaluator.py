@@ -70,3 +70,27 @@ def test_an_evaluation_does_not_depend_on_the_callers_matmul_precision():
         medium = evaluator(policy)
         assert torch.get_float32_matmul_precision() == "medium"  # the caller's level, restored
     assert medium["episodes"] == ieee["episodes"]
+
+
+@pytest.mark.skipif(importlib.util.find_spec("safety_gymnasium") is None, reason="safety-gymnasium missing")
+def test_an_evaluation_does_not_depend_on_the_callers_threads():
+    """A ``seeds=[...]`` run trains at ``threads=2`` and evaluates some seeds in 1-thread worker processes: the
+    rollout runs its policy at one thread, so an evaluation is the same whatever the caller's threads (ten
+    environments of a [256, 256] policy: the batch whose products differ in the last bits between one and two
+    threads on this project's CPUs)."""
+    import torch
+
+    from spoil_torchrl.modules import make_actor
+    from spoil_torchrl.trainers.precision import intra_op_threads
+
+    torch.manual_seed(0)
+    policy = make_actor(28, 2, hidden_cells=(256, 256))
+    evaluator = Evaluator(
+        "SafetyPointCircle1-v0", cost_threshold=25.0, return_range=(0.0, 40.0), episodes=10, num_envs=10
+    )
+    with intra_op_threads(1):
+        one = evaluator(policy)
+    with intra_op_threads(2):
+        two = evaluator(policy)
+        assert torch.get_num_threads() == 2  # the caller's, restored
+    assert two["episodes"] == one["episodes"]
