@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
+from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.eval import Evaluator, RolloutWriter
-from spoil_torchrl.eval.parallel import RolloutPool, available_cores
 from spoil_torchrl.modules import make_actor
 
 ENV_ID = "SafetyPointCircle1-v0"

@@ -53,11 +53,11 @@ from spoil_torchrl.data import (
     standardize_observations,
 )
 from spoil_torchrl.data.episodes import DatasetError
+from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.data.prepare import prepare_dataset
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.eval.evaluator import METRICS
-from spoil_torchrl.eval.parallel import RolloutPool, available_cores
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import CompiledStepper, offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint

@@ -5,12 +5,14 @@ cost is then the simulator's, ~1,500 steps/s for PointCircle1 on one core). Ever
 environments' reset seeds and the action sampling come from ``seed``, so the same call gives the same
 arrays (for the same ``num_envs``). :func:`collect` concatenates several policies' episodes into one file and
 records which episodes came from which policy in the file's metadata (:func:`segment_pools` reads them back),
-together with the random-policy and safe-high returns that normalise returns for the task.
+together with the random-policy and safe-high returns that normalise returns for the task; it shares the
+rollouts with a worker process per spare core (:class:`~spoil_torchrl.data.parallel.RolloutPool`).
 The file is written atomically: an interrupted collection leaves no file that loads.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -26,11 +28,16 @@ from torchrl.modules import ProbabilisticActor
 from tqdm.auto import tqdm
 
 from spoil_torchrl.data.hdf5 import write_dsrl_file
+from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers.precision import intra_op_threads, matmul_precision
 
 #: ``policy`` value of a :class:`Segment` that acts uniformly at random.
 RANDOM_POLICY = "random"
+
+#: From this many simulator steps on (about 10 s on one core), :func:`collect` shares its rollouts with worker
+#: processes by default.
+SHARED_STEPS = 50_000
 
 
 @dataclass(frozen=True)
@@ -232,27 +239,23 @@ def reference_policies(env_id: str) -> dict[str, str | None]:
     return {"random_return": RANDOM_POLICY, "safe_high_return": safe_high}
 
 
-def reference_returns(
-    env_id: str, *, episodes: int = 10, seed: int = 0, progress: bool = True, bar: tqdm | None = None
-) -> dict:
-    """Mean returns of the :func:`reference_policies` (``None`` for a missing one): the task's return
-    normalisation ``(R - random) / (safe_high - random)`` for generated data."""
-    out = {}
-    for name, spec in reference_policies(env_id).items():
-        if spec is None:
-            out[name] = None
-            continue
-        arrays = rollout(
+def reference_jobs(env_id: str, *, episodes: int = 10, seed: int = 0) -> dict[str, functools.partial]:
+    """The rollouts of the :func:`reference_policies` that the task has, as picklable calls (see
+    :class:`~spoil_torchrl.data.parallel.RolloutPool`); the means of their returns normalise the returns of
+    generated data: ``(R - random) / (safe_high - random)``."""
+    return {
+        name: functools.partial(
+            rollout,
             env_id,
             resolve_policy(spec, env_id),
             episodes,
             seed=_derive_seed(seed, 99),
-            progress=progress,
+            progress=False,
             desc=f"reference {spec}",
-            bar=bar,
         )
-        out[name] = float(episode_totals(arrays)[0].mean())
-    return out
+        for name, spec in reference_policies(env_id).items()
+        if spec is not None
+    }
 
 
 def collect(
@@ -265,8 +268,13 @@ def collect(
     reference_episodes: int = 10,
     progress: bool = True,
     metadata: dict | None = None,
+    workers: int | None = None,
 ) -> Path:
     """Roll out every segment's policy and write all episodes to ``path`` (DSRL layout, atomic).
+
+    The segments' and reference policies' rollouts are shared with ``workers`` worker processes
+    (:class:`~spoil_torchrl.data.parallel.RolloutPool`; default: one per spare core once the rollouts reach
+    :data:`SHARED_STEPS` steps, else none); the file is the same either way.
 
     The metadata (see :func:`~spoil_torchrl.data.read_metadata`) holds ``env_id``, ``seed``, ``num_envs``,
     ``cost_threshold`` (the task's episode-cost limit), ``segments`` (label, policy, episode range
@@ -292,24 +300,42 @@ def collect(
         raise ValueError(f"metadata may not override the collector's own entries {sorted(clash)}")
     start_time = time.perf_counter()
     parts, records, first = [], [], 0
-    # one bar over every segment and the reference rollouts, so that its estimate is the whole job's
-    policies = reference_policies(env_id).values()
-    reference_rollouts = reference_episodes * sum(spec is not None for spec in policies)
-    total = (sum(segment.episodes for segment in segments) + reference_rollouts) * task.episode_length
-    bar = tqdm(
-        total=total, desc=f"collecting {env_id}", disable=not progress, unit="step", dynamic_ncols=True
-    )
-    for k, segment in enumerate(segments):
-        arrays = rollout(
+    jobs = [
+        functools.partial(
+            rollout,
             env_id,
             resolve_policy(segment.policy, env_id),
             segment.episodes,
             seed=_derive_seed(seed, 10, k),
             num_envs=num_envs,
-            progress=progress,
+            progress=False,
             desc=f"{segment.label} ({segment.policy})",
-            bar=bar,
         )
+        for k, segment in enumerate(segments)
+    ]
+    references = reference_jobs(env_id, episodes=reference_episodes, seed=seed)
+    jobs += references.values()
+    # one bar over every segment and the reference rollouts, so that its estimate is the whole job's
+    total = sum(job.args[2] for job in jobs) * task.episode_length
+    bar = tqdm(
+        total=total, desc=f"collecting {env_id}", disable=not progress, unit="step", dynamic_ncols=True
+    )
+    here: set[int] = set()  # the jobs this process runs, on the bar as they go
+
+    def run_here(job: functools.partial) -> dict[str, np.ndarray]:
+        here.add(id(job))
+        return job(bar=bar)
+
+    if workers is None:  # a worker's start (about 3 s of a core) pays from some 10 s of rollouts
+        workers = 0 if total < SHARED_STEPS else available_cores() - 1
+    results = []
+    with RolloutPool(workers) as pool:
+        for job, arrays in zip(jobs, pool.map(jobs, run_here), strict=True):
+            if id(job) not in here:  # a worker's: the bar moves when it is done
+                bar.update(job.args[2] * task.episode_length)
+            results.append(arrays)
+    bar.close()
+    for segment, arrays in zip(segments, results[: len(segments)], strict=True):
         returns, costs = episode_totals(arrays)
         records.append(
             {
@@ -322,8 +348,10 @@ def collect(
         )
         first += segment.episodes
         parts.append(arrays)
-    references = reference_returns(env_id, episodes=reference_episodes, seed=seed, progress=progress, bar=bar)
-    bar.close()
+    references = dict.fromkeys(reference_policies(env_id)) | {
+        name: float(episode_totals(arrays)[0].mean())
+        for name, arrays in zip(references, results[len(segments) :], strict=True)
+    }
     arrays = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     meta = {
         "env_id": env_id,

@@ -171,7 +171,7 @@ class Evaluator:
     def rollout_job(self, policy: ProbabilisticActor) -> functools.partial:
         """The evaluation's rollout of ``policy`` as a picklable call (no argument; returns the DSRL arrays
         :meth:`report` reads): run it here, or in another process
-        (:class:`~spoil_torchrl.eval.parallel.RolloutPool`) with a copy of the policy -- the arrays are the same.
+        (:class:`~spoil_torchrl.data.parallel.RolloutPool`) with a copy of the policy -- the arrays are the same.
         """
         record_poses = self.writer is not None and self.poses and not self.frames
         return functools.partial(

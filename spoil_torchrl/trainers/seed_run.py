@@ -19,6 +19,7 @@ import torch
 from omegaconf import DictConfig
 
 from spoil_torchrl.data import DualDemoBuffers
+from spoil_torchrl.data.parallel import Job
 from spoil_torchrl.eval import Evaluator, RolloutWriter
 from spoil_torchrl.eval.dice_diagnostics import (
     dice_diagnostics,
@@ -28,7 +29,6 @@ from spoil_torchrl.eval.dice_diagnostics import (
     support_accuracy,
 )
 from spoil_torchrl.eval.mcap_resume import continue_rollouts
-from spoil_torchrl.eval.parallel import Job
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.trainers.algorithms import PolicyTraining
 from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -98,7 +98,7 @@ def performant_support(buffers, pools) -> dict | None:
 
 def rollout_job(seed_run: SeedRun) -> Job:
     """The evaluation rollout of the seed's current policy (a copy) as a job for a
-    :class:`~spoil_torchrl.eval.parallel.RolloutPool`."""
+    :class:`~spoil_torchrl.data.parallel.RolloutPool`."""
     with seed_run.training.policy() as policy:
         return seed_run.evaluator.rollout_job(copy.deepcopy(policy))
 

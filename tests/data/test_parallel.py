@@ -1,5 +1,5 @@
-"""Evaluation rollouts in worker processes: the same arrays as in the caller, and a caller that survives its
-workers (and the other way round)."""
+"""Rollouts in worker processes: the same arrays as in the caller (evaluations, a generated dataset), and a
+caller that survives its workers (and the other way round)."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
+from spoil_torchrl.data.parallel import RolloutPool
 from spoil_torchrl.eval import Evaluator, RolloutWriter
-from spoil_torchrl.eval.parallel import RolloutPool, local_share
 
 needs_simulator = pytest.mark.skipif(
     importlib.util.find_spec("safety_gymnasium") is None, reason="safety-gymnasium missing"
@@ -33,6 +33,12 @@ class DiesOutsideCaller:
         if os.getpid() != self.caller:
             os._exit(1)
         return {"pid": os.getpid()}
+
+
+class Sleeps:
+    def __call__(self) -> dict:
+        time.sleep(2.0)  # long enough for a worker to have taken the jobs before this one
+        return {"slept": True}
 
 
 class Fails:
@@ -89,22 +95,19 @@ def test_worker_rollouts_equal_the_callers_bit_for_bit(tmp_path):
 def test_a_dead_worker_is_reported_once_and_its_jobs_run_here():
     caller = os.getpid()
     with RolloutPool(workers=1) as pool:
-        with pytest.warns(RuntimeWarning, match="evaluating in this process"):
-            results = list(pool.map([DiesOutsideCaller(caller), DiesOutsideCaller(caller)]))
-        assert results == [{"pid": caller}] * 2
-        assert pool.workers == 1 and list(pool.map([DiesOutsideCaller(caller)] * 2)) == [{"pid": caller}] * 2
+        with pytest.warns(RuntimeWarning, match="running them in this process"):
+            results = list(pool.map([DiesOutsideCaller(caller), Sleeps()]))  # the worker takes the first
+        assert results == [{"pid": caller}, {"slept": True}]
+        assert list(pool.map([DiesOutsideCaller(caller)] * 2)) == [{"pid": caller}] * 2  # all here now
 
 
 def test_a_jobs_error_is_raised_in_the_caller():
     with RolloutPool(workers=1) as pool:
-        results = pool.map([Fails(), lambda: {"a": 1}])  # the first job runs in the worker
-        with pytest.raises(ValueError, match="no rollout in") as err:
-            next(results)
-        assert str(os.getpid()) not in str(err.value)
+        with pytest.raises(ValueError, match="no rollout in"):
+            list(pool.map([Fails(), Fails(), Fails()]))
 
 
 def test_no_workers_runs_everything_here():
-    assert local_share(4, 0) == 4
     with RolloutPool(workers=0) as pool:
         assert list(pool.map([lambda: {"a": 1}, lambda: {"a": 2}])) == [{"a": 1}, {"a": 2}]
 
@@ -113,7 +116,7 @@ def test_workers_exit_when_the_caller_is_killed():
     script = textwrap.dedent(
         """
         import time
-        from spoil_torchrl.eval.parallel import RolloutPool
+        from spoil_torchrl.data.parallel import RolloutPool
         pool = RolloutPool(workers=2)
         print(*(p.pid for p in pool._executor._processes.values()), flush=True)
         time.sleep(600)
@@ -136,3 +139,67 @@ def _alive(pid: int) -> bool:
             return stat.read().split(")")[-1].split()[0] != "Z"  # a zombie has exited
     except FileNotFoundError:
         return False
+
+
+@needs_simulator
+def test_a_dataset_collected_with_a_worker_is_the_one_collected_here(tmp_path):
+    import h5py
+
+    from spoil_torchrl.data import read_metadata
+    from spoil_torchrl.data.collect import Segment, collect
+
+    segments = [
+        Segment("safe", "zoo:safe-high", 2),
+        Segment("unsafe", "zoo:unsafe-high", 1),
+        Segment("random", "random", 1),
+    ]
+    files = {
+        workers: collect(
+            "SafetyPointCircle1-v0",
+            segments,
+            tmp_path / f"w{workers}.hdf5",
+            seed=3,
+            num_envs=2,
+            reference_episodes=1,
+            progress=False,
+            workers=workers,
+        )
+        for workers in (0, 1)
+    }
+    with h5py.File(files[0]) as here, h5py.File(files[1]) as shared:
+        assert sorted(here) == sorted(shared)
+        for key in here:
+            if isinstance(here[key], h5py.Dataset):
+                np.testing.assert_array_equal(here[key][()], shared[key][()], err_msg=key)
+    meta = [read_metadata(files[w]) for w in (0, 1)]
+    for m in meta:
+        m.pop("seconds")
+    assert meta[0] == meta[1] and meta[0]["safe_high_return"] is not None
+
+
+def test_a_script_without_a_main_guard_is_told_and_still_gets_its_results(tmp_path):
+    """Spawned workers import the caller's script again; one without an ``if __name__ == "__main__":`` guard
+    would start the pool once more in each worker: the worker stops instead, and the caller runs the jobs."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        textwrap.dedent(
+            """
+            import functools
+            import time
+            import warnings
+
+            from spoil_torchrl.data.parallel import RolloutPool
+
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                with RolloutPool(workers=1) as pool:
+                    # the caller takes the last job, long enough for the worker to take the first
+                    jobs = [functools.partial(dict, a=1), functools.partial(time.sleep, 2.0)]
+                    print(list(pool.map(jobs)), [str(w.message) for w in caught])
+            """
+        )
+    )
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith("[{'a': 1}, None]") and "__main__" in proc.stdout  # the warning's hint
+    assert "guard its entry point" in proc.stderr  # the worker's reason

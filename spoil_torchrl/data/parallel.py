@@ -1,15 +1,19 @@
-"""Several evaluations' rollouts at once: the caller's process and spawned worker processes share them.
+"""Several policy rollouts at once: the caller's process and spawned worker processes share them.
 
-The simulator steps one environment at a time on one core, so an evaluation uses one core whatever the
-training's threads. When a ``seeds=[...]`` run evaluates its seeds' policies, :class:`RolloutPool` gives each
-spare core a share of the rollouts (:meth:`~spoil_torchrl.eval.Evaluator.rollout_job`, a picklable call with
-a copy of the policy) and runs the rest in the caller's process. A rollout draws from its own random stream
-and computes in IEEE float32 (:func:`spoil_torchrl.data.collect.rollout`), so its arrays are the same in a
-worker as in the caller, bit for bit (``tests/eval/test_parallel.py``).
+The simulator steps one environment at a time on one core, so a rollout uses one core whatever the caller's
+threads. :class:`RolloutPool` hands independent rollouts -- the segments of a generated dataset
+(:func:`~spoil_torchrl.data.collect.collect`), the seeds' evaluations of a ``seeds=[...]`` run
+(:meth:`~spoil_torchrl.eval.Evaluator.rollout_job`, with a copy of each policy) -- to a worker process per spare
+core, while the caller takes its own share. A rollout draws from its own random stream and computes its
+policy's products in IEEE float32 on one thread (:func:`~spoil_torchrl.data.collect.rollout`), so its arrays
+are the same in a worker as in the caller, bit for bit (``tests/data/test_parallel.py``).
 
 Workers are spawned (not forked: the caller's torch threads and open files stay its own), ignore Ctrl-C (the
 caller stops them) and exit when the caller dies. A worker that dies is reported once; its rollouts, and all
-later ones, then run in the caller's process.
+later ones, then run in the caller's process. Jobs must be picklable (a :func:`functools.partial` of a
+module-level function, say); workers import the package from disk when they start and, as with any spawned
+process, the caller's script: a script that uses the pool needs an ``if __name__ == "__main__":`` guard (one
+without is stopped in the worker, and the pool runs everything in the caller, with a warning).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 #: A rollout job: a picklable call without arguments that returns the rollout's arrays.
@@ -34,19 +38,6 @@ def available_cores() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
-
-
-def local_share(jobs: int, workers: int) -> int:
-    """How many of ``jobs`` the caller runs itself beside ``workers`` workers: an even share, at least one
-    (the caller would otherwise only wait), and it takes the smaller share because it also writes the results.
-
-    Examples:
-        >>> [local_share(5, 1), local_share(5, 4), local_share(2, 1), local_share(1, 1), local_share(3, 0)]
-        [2, 1, 1, 1, 3]
-    """
-    if workers < 1:
-        return jobs
-    return min(jobs, max(1, jobs // (workers + 1)))
 
 
 def _exit_with(parent: int) -> None:  # a worker outlives no killed caller
@@ -88,6 +79,12 @@ class RolloutPool:
     """
 
     def __init__(self, workers: int | None = None) -> None:
+        # a worker that is starting runs the caller's script again (multiprocessing's own check of this case)
+        if getattr(multiprocessing.current_process(), "_inheriting", False):
+            raise RuntimeError(
+                "a script that starts rollout workers was run again by one of them: guard its entry point "
+                'with `if __name__ == "__main__":`'
+            )
         self.workers = max(0, available_cores() - 1 if workers is None else int(workers))
         self._executor: ProcessPoolExecutor | None = None
         if self.workers:
@@ -103,34 +100,44 @@ class RolloutPool:
             except (OSError, RuntimeError) as err:
                 self._give_up(err)
 
-    def map(self, jobs: Iterable[Job]) -> Iterator[dict]:
-        """The result of every job, in order. The first jobs go to the workers, the caller runs the
-        last :func:`local_share` itself before it yields, so that it can consume the workers' results while
-        they finish. A job's own error is raised as if it had run here."""
-        jobs = list(jobs)
-        remote = len(jobs) - local_share(len(jobs), self.workers if self._executor else 0)
-        futures = []
-        for job in jobs[:remote]:
-            try:
-                futures.append(self._executor.submit(job))
-            except (BrokenProcessPool, RuntimeError) as err:
-                self._give_up(err)
+    def map(self, jobs: Iterable[Job], run_here: Callable[[Job], dict] | None = None) -> Iterator[dict]:
+        """The result of every job, in order. All jobs are offered to the workers, which take them from the
+        front; meanwhile the caller takes them from the back, as long as no worker has taken the next one, and
+        runs them with ``run_here`` (default: ``job()``; e.g. with the caller's progress bar). It yields once it
+        has none left to take, so that it consumes the workers' results as they finish. A job's own error is
+        raised as if it had run here."""
+        jobs, run_here = list(jobs), run_here or (lambda job: job())
+        futures = self._submit(jobs)
+        local = {}
+        for i in reversed(range(len(jobs))):
+            if futures and not futures[i].cancel():  # a worker has it already
                 break
-        local = [job() for job in jobs[len(futures) :]]
-        for job, future in zip(jobs, futures, strict=False):
+            local[i] = run_here(jobs[i])
+        for i, job in enumerate(jobs):
+            if i in local:
+                yield local.pop(i)
+                continue
             try:
-                yield future.result()
+                yield futures[i].result()
             except BrokenProcessPool as err:
                 self._give_up(err)
-                yield job()
-        yield from local
+                yield run_here(job)
+
+    def _submit(self, jobs: list[Job]) -> list[Future]:
+        if self._executor is None:
+            return []
+        try:
+            return [self._executor.submit(job) for job in jobs]
+        except (BrokenProcessPool, RuntimeError) as err:
+            self._give_up(err)
+            return []
 
     def _give_up(self, err: BaseException) -> None:
         if self._executor is None:  # said already
             return
         warnings.warn(
-            f"evaluation worker processes unavailable ({type(err).__name__}: {err}); evaluating in this "
-            "process from now on",
+            f"rollout worker processes unavailable ({type(err).__name__}: {err}); running them in this "
+            'process from now on (a script that starts them needs an `if __name__ == "__main__":` guard)',
             RuntimeWarning,
             stacklevel=3,
         )
