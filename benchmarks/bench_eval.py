@@ -13,6 +13,7 @@ ways alternate, ``--repeats`` times each, and the medians are printed with their
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import tempfile
 import time
@@ -42,8 +43,7 @@ def main() -> None:
         torch.manual_seed(k)
         policies.append(make_actor(28, 2, hidden_cells=(256, 256)))
     workers = min(args.seeds, available_cores()) - 1 if args.workers is None else args.workers
-    with tempfile.TemporaryDirectory() as tmp:
-        writers = [RolloutWriter(Path(tmp) / f"seed{k}.mcap", cost_threshold=10.0) for k in range(args.seeds)]
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         evaluators = [
             Evaluator(
                 ENV_ID,
@@ -51,14 +51,14 @@ def main() -> None:
                 return_range=(0.0, 50.0),
                 episodes=args.episodes,
                 seed=10_000 + k,
-                writer=writers[k],
+                writer=stack.enter_context(RolloutWriter(Path(tmp) / f"seed{k}.mcap", cost_threshold=10.0)),
             )
             for k in range(args.seeds)
         ]
-        pool = RolloutPool(workers=workers)
+        pool = stack.enter_context(RolloutPool(workers=workers))
 
         def shared_round() -> list[dict]:
-            rollouts = pool.map(e.rollout_job(p) for e, p in zip(evaluators, policies, strict=True))
+            rollouts = pool.map([e.rollout_job(p) for e, p in zip(evaluators, policies, strict=True)])
             return [e.report(next(rollouts), step=0) for e in evaluators]
 
         start = time.perf_counter()
@@ -74,9 +74,6 @@ def main() -> None:
             shared = shared_round()
             times["rollouts shared"].append(time.perf_counter() - start)
             episodes = {"alone": [r["episodes"] for r in alone], "shared": [r["episodes"] for r in shared]}
-        pool.close()
-        for writer in writers:
-            writer.finish()
     if episodes["alone"] != episodes["shared"]:
         raise SystemExit("evaluation bench: the two ways gave different episodes")
     base = statistics.median(times["one after another"])

@@ -378,7 +378,7 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
         if not evaluation_due(step, cfg):
             return
         stepper.sync()  # every seed's stepper holds its networks and optimiser states again
-        rollouts = pool.map(rollout_job(seed_run) for seed_run in runs)  # on the spare cores too
+        rollouts = pool.map([rollout_job(seed_run) for seed_run in runs])  # on the spare cores too
         results, started = [], time.perf_counter()
         for seed_run, t0 in zip(runs, starts, strict=True):  # a seed's time: from the previous seed's end
             results.append(evaluate(seed_run, step, t0, next(rollouts), started))

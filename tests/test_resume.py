@@ -151,8 +151,8 @@ def test_seeds_run_each_seed_as_its_own_run_and_resume_bit_exactly(tmp_path, tin
         assert list((full / f"seed{seed}" / "logs").rglob("dice.loss_nu.csv"))
         config = (full / f"seed{seed}" / "config.yaml").read_text()
         assert f"\nseed: {seed}\n" in config and "seeds" not in config  # the single run's settings
-        # its evaluations' episodes were rolled out in a worker process (seed 0) or here (seed 1), from a copy
-        # of the policy: evaluating the policy file it saved gives them again
+        # its evaluations' episodes were rolled out from a copy of the policy, in a worker process or in the
+        # run's: evaluating the policy file it saved gives them again
         _same_final_evaluation(full / f"seed{seed}", results)
     seed0 = json.loads((full / "seed0" / "results.json").read_text())
     assert seed0["diagnostics"] == alone["diagnostics"] and seed0["data"] == alone["data"]

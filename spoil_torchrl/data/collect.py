@@ -327,7 +327,7 @@ def collect(
         return job(bar=bar)
 
     if workers is None:  # a worker's start (about 3 s of a core) pays from some 10 s of rollouts
-        workers = 0 if total < SHARED_STEPS else available_cores() - 1
+        workers = 0 if total < SHARED_STEPS else min(len(jobs), available_cores()) - 1
     results = []
     with RolloutPool(workers) as pool:
         for job, arrays in zip(jobs, pool.map(jobs, run_here), strict=True):

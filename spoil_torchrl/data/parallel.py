@@ -9,11 +9,12 @@ policy's products in IEEE float32 on one thread (:func:`~spoil_torchrl.data.coll
 are the same in a worker as in the caller, bit for bit (``tests/data/test_parallel.py``).
 
 Workers are spawned (not forked: the caller's torch threads and open files stay its own), ignore Ctrl-C (the
-caller stops them) and exit when the caller dies. A worker that dies is reported once; its rollouts, and all
-later ones, then run in the caller's process. Jobs must be picklable (a :func:`functools.partial` of a
-module-level function, say); workers import the package from disk when they start and, as with any spawned
-process, the caller's script: a script that uses the pool needs an ``if __name__ == "__main__":`` guard (one
-without is stopped in the worker, and the pool runs everything in the caller, with a warning).
+pool ends them: at once on an error or Ctrl-C in the caller, else after their current job) and exit when the
+caller dies. A worker that dies is reported once; its rollouts, and all later ones, then run in the caller's
+process. Jobs must be picklable (a :func:`functools.partial` of a module-level function, say); workers import
+the package from disk when they start and, as with any spawned process, the caller's script: a script that
+uses the pool needs an ``if __name__ == "__main__":`` guard (one without is stopped in the worker, and the
+pool runs everything in the caller, with a warning).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import CancelledError, Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 #: A rollout job: a picklable call without arguments that returns the rollout's arrays.
@@ -87,6 +88,8 @@ class RolloutPool:
             )
         self.workers = max(0, available_cores() - 1 if workers is None else int(workers))
         self._executor: ProcessPoolExecutor | None = None
+        self._gave_up = False
+        self._lock = threading.Lock()
         if self.workers:
             try:
                 self._executor = ProcessPoolExecutor(
@@ -97,60 +100,125 @@ class RolloutPool:
                 )
                 for _ in range(self.workers):
                     self._executor.submit(_warm_up)
-            except (OSError, RuntimeError) as err:
+            except Exception as err:  # e.g. in a daemonic process, which may not have children
                 self._give_up(err)
 
     def map(self, jobs: Iterable[Job], run_here: Callable[[Job], dict] | None = None) -> Iterator[dict]:
-        """The result of every job, in order. All jobs are offered to the workers, which take them from the
-        front; meanwhile the caller takes them from the back, as long as no worker has taken the next one, and
-        runs them with ``run_here`` (default: ``job()``; e.g. with the caller's progress bar). It yields once it
-        has none left to take, so that it consumes the workers' results as they finish. A job's own error is
-        raised as if it had run here."""
-        jobs, run_here = list(jobs), run_here or (lambda job: job())
-        futures = self._submit(jobs)
-        local = {}
-        for i in reversed(range(len(jobs))):
-            if futures and not futures[i].cancel():  # a worker has it already
-                break
-            local[i] = run_here(jobs[i])
-        for i, job in enumerate(jobs):
-            if i in local:
-                yield local.pop(i)
-                continue
-            try:
-                yield futures[i].result()
-            except BrokenProcessPool as err:
-                self._give_up(err)
-                yield run_here(job)
+        """The result of every job, in order.
 
-    def _submit(self, jobs: list[Job]) -> list[Future]:
-        if self._executor is None:
-            return []
+        The jobs are taken (all of them at the first ``next``) from both ends: each worker takes the next one
+        from the front whenever it is free, the caller takes them from the back and runs them with ``run_here``
+        (default: ``job()``; e.g. with the caller's progress bar) until the two meet. The caller then yields
+        the results in order, its own at once and the workers' as they finish. A job's error is raised here (the
+        caller's own jobs run first). Jobs not yet started when the generator is closed are cancelled."""
+        jobs, run_here = list(jobs), run_here or _call
+        claims = _Claims(len(jobs))
+        futures: dict[int, Future | None] = {}  # a worker's job; None: it could not be handed over
+
+        def offer(_: Future | None = None) -> None:  # a free worker takes the next job from the front
+            with claims.lock:  # a claimed job has its entry in ``futures`` at once
+                i = claims.take_front()
+                if i is None:
+                    return
+                futures[i] = future = self._submit(jobs[i])
+            if future is not None:
+                future.add_done_callback(offer)
+
+        for _ in range(min(self.workers, len(jobs)) if self._executor is not None else 0):
+            offer()
+        local = {}
         try:
-            return [self._executor.submit(job) for job in jobs]
-        except (BrokenProcessPool, RuntimeError) as err:
+            while (i := claims.back()) is not None:
+                local[i] = run_here(jobs[i])
+            for i, job in enumerate(jobs):
+                if i in local:
+                    yield local.pop(i)
+                    continue
+                future = futures[i]
+                if future is not None:
+                    try:
+                        yield future.result()
+                        continue
+                    except (BrokenProcessPool, CancelledError) as err:  # a worker died
+                        self._give_up(err)
+                yield run_here(job)
+        finally:
+            claims.close()
+            for future in futures.values():
+                if future is not None:
+                    future.cancel()
+
+    def _submit(self, job: Job) -> Future | None:
+        executor = self._executor
+        if executor is None:
+            return None
+        try:
+            return executor.submit(job)
+        except Exception as err:  # a broken or shut pool, a worker that cannot start
             self._give_up(err)
-            return []
+            return None
 
     def _give_up(self, err: BaseException) -> None:
-        if self._executor is None:  # said already
-            return
+        """Say once that the workers are unavailable; from now on everything runs here. (Called from the
+        executor's thread too, so it does not wait for the workers.)"""
+        with self._lock:
+            executor, self._executor = self._executor, None
+            if self._gave_up:
+                return
+            self._gave_up = True
         warnings.warn(
-            f"rollout worker processes unavailable ({type(err).__name__}: {err}); running them in this "
-            'process from now on (a script that starts them needs an `if __name__ == "__main__":` guard)',
+            f"rollout worker processes unavailable ({type(err).__name__}: {err}); running the rollouts in this "
+            "process from now on (if the workers could not start from a script: it needs an "
+            '`if __name__ == "__main__":` guard)',
             RuntimeWarning,
             stacklevel=3,
         )
-        self.close()
-
-    def close(self) -> None:
-        """Stop the workers (after their current job); later jobs run in this process."""
-        executor, self._executor = self._executor, None
         if executor is not None:
-            executor.shutdown(wait=True, cancel_futures=True)
+            executor.shutdown(wait=False, cancel_futures=True)
+
+    def close(self, terminate: bool = False) -> None:
+        """Stop the workers after their current job (``terminate``: at once, the job's result lost); later jobs
+        run in this process."""
+        with self._lock:
+            executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        if terminate:  # (concurrent.futures has no public way before Python 3.14)
+            for process in list(getattr(executor, "_processes", {}).values()):
+                process.terminate()
+        executor.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> RolloutPool:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        self.close(terminate=exc_type is not None)  # an error or Ctrl-C does not wait for the workers' jobs
+
+
+def _call(job: Job) -> dict:
+    return job()
+
+
+class _Claims:
+    """The jobs of one :meth:`RolloutPool.map` not yet taken: ``[front, back)``."""
+
+    def __init__(self, jobs: int) -> None:
+        self.lock = threading.Lock()
+        self.front, self.end = 0, jobs
+
+    def take_front(self) -> int | None:  # with the lock held
+        if self.front >= self.end:
+            return None
+        self.front += 1
+        return self.front - 1
+
+    def back(self) -> int | None:
+        with self.lock:
+            if self.front >= self.end:
+                return None
+            self.end -= 1
+            return self.end
+
+    def close(self) -> None:
+        with self.lock:
+            self.end = self.front

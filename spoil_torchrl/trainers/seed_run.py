@@ -114,7 +114,9 @@ def evaluate(
     the DICE diagnostics, and rewrite ``results.json``; returns the evaluation.
 
     ``rollout``: the evaluation's episodes, when they were rolled out elsewhere (:func:`rollout_job`), else they
-    are rolled out here. ``started``: when the evaluation's time (``eval_seconds``) started, if before the call.
+    are rolled out here. ``started``: when the evaluation's time (``eval_seconds``) started, if before the call
+    (a ``seeds=[...]`` run counts from the previous seed's end: the rollouts its main process ran fall to the
+    first seed, and the seeds' times add up to the round's).
     """
     cfg, results, training = seed_run.cfg, seed_run.results, seed_run.training
     evaluation_start = time.perf_counter() if started is None else started

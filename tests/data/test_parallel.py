@@ -41,6 +41,17 @@ class Sleeps:
         return {"slept": True}
 
 
+class SleepsLong:
+    def __call__(self) -> dict:
+        time.sleep(120.0)
+        return {}
+
+
+class Interrupted:
+    def __call__(self) -> dict:
+        raise KeyboardInterrupt
+
+
 class Fails:
     def __call__(self) -> dict:
         raise ValueError(f"no rollout in {os.getpid()}")
@@ -95,7 +106,7 @@ def test_worker_rollouts_equal_the_callers_bit_for_bit(tmp_path):
 def test_a_dead_worker_is_reported_once_and_its_jobs_run_here():
     caller = os.getpid()
     with RolloutPool(workers=1) as pool:
-        with pytest.warns(RuntimeWarning, match="running them in this process"):
+        with pytest.warns(RuntimeWarning, match="running the rollouts in this process"):
             results = list(pool.map([DiesOutsideCaller(caller), Sleeps()]))  # the worker takes the first
         assert results == [{"pid": caller}, {"slept": True}]
         assert list(pool.map([DiesOutsideCaller(caller)] * 2)) == [{"pid": caller}] * 2  # all here now
@@ -105,6 +116,13 @@ def test_a_jobs_error_is_raised_in_the_caller():
     with RolloutPool(workers=1) as pool:
         with pytest.raises(ValueError, match="no rollout in"):
             list(pool.map([Fails(), Fails(), Fails()]))
+
+
+def test_ctrl_c_in_the_caller_does_not_wait_for_the_workers():
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt), RolloutPool(workers=1) as pool:
+        list(pool.map([SleepsLong(), Interrupted()]))  # the worker sleeps, the caller is interrupted
+    assert time.monotonic() - start < 60
 
 
 def test_no_workers_runs_everything_here():
@@ -203,3 +221,29 @@ def test_a_script_without_a_main_guard_is_told_and_still_gets_its_results(tmp_pa
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.startswith("[{'a': 1}, None]") and "__main__" in proc.stdout  # the warning's hint
     assert "guard its entry point" in proc.stderr  # the worker's reason
+
+
+def _pool_in_a_daemon(queue) -> None:
+    import functools
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with RolloutPool(workers=1) as pool:
+            results = list(pool.map([functools.partial(dict, a=1), functools.partial(dict, a=2)]))
+    queue.put((results, [str(w.message) for w in caught]))
+
+
+def test_a_pool_in_a_daemonic_process_runs_everything_there():
+    """A daemonic process (a multiprocessing.Pool worker, say) may not start processes: the pool says so and runs
+    the jobs itself."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    queue = context.Queue()
+    daemon = context.Process(target=_pool_in_a_daemon, args=(queue,), daemon=True)
+    daemon.start()
+    results, messages = queue.get(timeout=120)
+    daemon.join(timeout=60)
+    assert results == [{"a": 1}, {"a": 2}] and daemon.exitcode == 0
+    assert len(messages) == 1 and "daemonic processes are not allowed to have children" in messages[0]
