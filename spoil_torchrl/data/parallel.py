@@ -107,10 +107,11 @@ class RolloutPool:
         """The result of every job, in order.
 
         The jobs are taken (all of them at the first ``next``) from both ends: each worker takes the next one
-        from the front whenever it is free, the caller takes them from the back and runs them with ``run_here``
-        (default: ``job()``; e.g. with the caller's progress bar) until the two meet. The caller then yields
-        the results in order, its own at once and the workers' as they finish. A job's error is raised here (the
-        caller's own jobs run first). Jobs not yet started when the generator is closed are cancelled."""
+        from the front whenever it is free; the caller yields the next result in order as soon as there is one
+        (so that its consumer, e.g. writing an evaluation's files, works while the workers roll out), and
+        otherwise takes a job from the back and runs it with ``run_here`` (default: ``job()``; e.g. with the
+        caller's progress bar). A job's error is raised here. Jobs not yet started when the generator is closed
+        are cancelled."""
         jobs, run_here = list(jobs), run_here or _call
         claims = _Claims(len(jobs))
         futures: dict[int, Future | None] = {}  # a worker's job; None: it could not be handed over
@@ -126,27 +127,35 @@ class RolloutPool:
 
         for _ in range(min(self.workers, len(jobs)) if self._executor is not None else 0):
             offer()
-        local = {}
+        local, done = {}, 0  # the caller's results; how many have been yielded
         try:
-            while (i := claims.back()) is not None:
-                local[i] = run_here(jobs[i])
-            for i, job in enumerate(jobs):
-                if i in local:
-                    yield local.pop(i)
+            while done < len(jobs):
+                future = futures.get(done)  # the next result, if a worker has the job
+                if done in local:
+                    yield local.pop(done)
+                elif future is not None and future.done():
+                    yield self._result(future, jobs[done], run_here)
+                elif (i := claims.back()) is not None:  # nothing to yield yet: take a job
+                    local[i] = run_here(jobs[i])
                     continue
-                future = futures[i]
-                if future is not None:
-                    try:
-                        yield future.result()
-                        continue
-                    except (BrokenProcessPool, CancelledError) as err:  # a worker died
-                        self._give_up(err)
-                yield run_here(job)
+                else:  # every job is taken, this one by a worker (None: it could not be handed over)
+                    future = futures[done]
+                    yield (
+                        run_here(jobs[done]) if future is None else self._result(future, jobs[done], run_here)
+                    )
+                done += 1
         finally:
             claims.close()
             for future in futures.values():
                 if future is not None:
                     future.cancel()
+
+    def _result(self, future: Future, job: Job, run_here: Callable[[Job], dict]) -> dict:
+        try:
+            return future.result()
+        except (BrokenProcessPool, CancelledError) as err:  # a worker died: the job runs here
+            self._give_up(err)
+            return run_here(job)
 
     def _submit(self, job: Job) -> Future | None:
         executor = self._executor

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import torch
 
@@ -38,8 +39,7 @@ MATMUL_PRECISIONS = ("highest", "high", "medium")
 REDUCED_PRECISION_ERROR = 1e-4
 
 
-@contextlib.contextmanager
-def intra_op_threads(threads: int) -> Iterator[None]:
+def intra_op_threads(threads: int) -> contextlib.AbstractContextManager[None]:
     """Run the block with ``torch.set_num_threads(threads)``, restoring the previous number after.
 
     A product's rounding may depend on how many threads compute it (on this project's CPUs a ``[10, 256] x
@@ -54,16 +54,10 @@ def intra_op_threads(threads: int) -> Iterator[None]:
         >>> torch.get_num_threads() == before
         True
     """
-    previous = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
+    return _scoped(torch.get_num_threads, torch.set_num_threads, threads)
 
 
-@contextlib.contextmanager
-def matmul_precision(precision: str) -> Iterator[None]:
+def matmul_precision(precision: str) -> contextlib.AbstractContextManager[None]:
     """Run the block with ``torch.set_float32_matmul_precision(precision)``, restoring the previous level after.
 
     Examples:
@@ -75,12 +69,18 @@ def matmul_precision(precision: str) -> Iterator[None]:
     """
     if precision not in MATMUL_PRECISIONS:
         raise ValueError(f"matmul precision must be one of {MATMUL_PRECISIONS}, got {precision!r}")
-    previous = torch.get_float32_matmul_precision()
-    torch.set_float32_matmul_precision(precision)
+    return _scoped(torch.get_float32_matmul_precision, torch.set_float32_matmul_precision, precision)
+
+
+@contextlib.contextmanager
+def _scoped(get: Callable[[], Any], set_: Callable[[Any], None], value: Any) -> Iterator[None]:
+    """A global setting set to ``value`` for the block, its previous value restored after."""
+    previous = get()
+    set_(value)
     try:
         yield
     finally:
-        torch.set_float32_matmul_precision(previous)
+        set_(previous)
 
 
 def matmul_relative_error(rows: int = 512, cells: int = 256) -> float:
