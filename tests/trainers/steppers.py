@@ -29,6 +29,11 @@ def sgd(params, lr: float = 1e-2) -> torch.optim.Optimizer:
     return torch.optim.SGD(list(params), lr=lr)
 
 
+def weighted_bc(role: str, weight: str = "dice_weight") -> WeightedBCLoss:
+    """The policy extraction of the small main stages: a one-layer actor, weighted BC on ``role``."""
+    return WeightedBCLoss(make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role=role, weight=weight)
+
+
 def spoildice(distribution: str, penalty: float, cells: tuple[int, ...] = (32, 32)):
     """SpoilDICE + weighted BC on its weights: the same initial weights on every call."""
     torch.manual_seed(3)
@@ -55,9 +60,7 @@ def demodice_s():
         regularization="safe",
         reward="log_ratio_performant",
     )
-    actor = WeightedBCLoss(
-        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="safe", weight="dice_weight"
-    )
+    actor = weighted_bc("safe")
     optimizers = [sgd(dice.nu_network_params.values(True, True)), sgd(actor.parameters())]
     return {"dice": dice, "actor": actor}, optimizers
 
@@ -81,9 +84,7 @@ def safedice():
     torch.manual_seed(3)
     dice = SafeDICELoss(make_value_network(OBS_DIM, hidden_cells=(32, 32)), alpha=0.5, gradient_penalty=10.0)
     dice.set_keys(logit="log_ratio_performant")
-    actor = WeightedBCLoss(
-        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="unlabeled", weight="dice_weight"
-    )
+    actor = weighted_bc("unlabeled")
     optimizers = [sgd(dice.nu_network_params.values(True, True)), sgd(actor.parameters())]
     return {"dice": dice, "actor": actor}, optimizers
 
@@ -114,18 +115,14 @@ def coptidice(cost_ub_epsilon: float):
         cost_ub_epsilon=cost_ub_epsilon,
         gradient_penalty=10.0,
     )
-    actor = WeightedBCLoss(
-        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="unlabeled", weight="dice_weight"
-    )
+    actor = weighted_bc("unlabeled")
     return {"dice": dice, "actor": actor}, [sgd(dice.parameters()), sgd(actor.parameters())]
 
 
 def filtered_bc():
     """Weighted BC with its weight read from the batch (filtered BC's ``safe_support`` on D_P)."""
     torch.manual_seed(3)
-    actor = WeightedBCLoss(
-        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(32,)), role="performant", weight="safe_support"
-    )
+    actor = weighted_bc("performant", weight="safe_support")
     return {"actor": actor}, [sgd(actor.parameters())]
 
 
