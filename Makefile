@@ -1,11 +1,23 @@
 # Every target sets up .venv on first use (idempotent: a stamp file records the install).
 # GPU machines: override the torch requirement, e.g.
 #   make test TORCH_SPEC="torch==2.13.0 --index-url https://download.pytorch.org/whl/cu128"
+# STACK=legacy sets up .venv-legacy with the 2023 simulators (gymnasium 0.29.1, mujoco 2.3.7, numpy 1.26.4),
+# which reproduce the results committed before the default stack became gymnasium 1.x / mujoco 3 / numpy 2:
+#   make test STACK=legacy      make run STACK=legacy ARGS="seed=1"
 PYTHON ?= python3
-VENV ?= .venv
+STACK ?= default
 TORCH_SPEC ?= torch==2.13.0
+ifeq ($(STACK),default)
+VENV ?= .venv
+STACK_EXTRAS := safety,minari
+else ifeq ($(STACK),legacy)
+VENV ?= .venv-legacy
+STACK_EXTRAS := safety-legacy,minari-legacy
+else
+$(error STACK=$(STACK): the stacks are default and legacy)
+endif
 # Extras installed by the set-up; EXTRAS=dev skips the simulators (their tests then skip).
-EXTRAS ?= dev,safety,launchers,tensorboard,wandb,minari
+EXTRAS ?= dev,$(STACK_EXTRAS),launchers,tensorboard,wandb
 SAFETY_GYMNASIUM ?= safety-gymnasium==1.0.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.spoil_torchrl-installed
@@ -19,7 +31,7 @@ $(STAMP): pyproject.toml Makefile
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check $(TORCH_SPEC)
 	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[$(EXTRAS)]"
-	@case ",$(EXTRAS)," in *,safety,*) \
+	@case ",$(EXTRAS)," in *,safety,*|*,safety-legacy,*) \
 	  $(PY) -m pip install --quiet --disable-pip-version-check --no-deps $(SAFETY_GYMNASIUM);; esac
 	@touch $(STAMP)
 

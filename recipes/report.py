@@ -9,7 +9,9 @@ results (mean normalised cost <= 1) in bold, as the paper's Table 1 / Table L. A
 paper's order. Runs that did not finish (failed, interrupted, killed, still running) are listed as skipped, with
 the reason. A seed found twice (unless ``--latest``: the newest run counts), or runs of one dataset made with
 different training budgets (the ``train`` section of the ``config.yaml`` beside each ``results.json``), stop
-the report with an error naming the runs.
+the report with an error naming the runs. Each table names the software stack its runs were made on
+(``results.json``'s ``stack``), and the report warns when one dataset's runs come from several stacks or a
+run's data were made on another stack than the run (their simulators differ).
 The plot puts normalised cost on x and normalised feasible return on y, one marker per algorithm with
 standard-error bars, the safe region (cost <= 1) shaded; the curves plot each metric against the training
 step (mean over seeds, standard error shaded); both from ``spoil_torchrl.eval.figures`` (one colour and
@@ -29,6 +31,7 @@ import torch
 
 from spoil_torchrl.eval import mean_stderr
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
+from spoil_torchrl.stack import stack_label, stack_name
 from spoil_torchrl.trainers.run_dir import run_status
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
@@ -96,12 +99,45 @@ def load_runs(
     return dict(runs)
 
 
+def run_stack(results: dict) -> str:
+    """The software stack a run was made on, as the report names it (``results.json``'s ``stack``)."""
+    stack = results.get("stack")
+    if stack is None:
+        return "not recorded (made before runs recorded their stack: the legacy stack)"
+    return f"{stack_name(stack)} ({stack_label(stack)})"
+
+
+def stack_warnings(runs: dict[tuple[str, str], list[dict]]) -> list[str]:
+    """A line for each dataset whose runs come from more than one software stack, and for runs trained on data
+    made on another stack than their own: their numbers are not comparable (other physics)."""
+    out = []
+    by_dataset: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    for (dataset, _), group in runs.items():
+        for results in group:
+            by_dataset[dataset][run_stack(results)] += 1
+            data_stack = (results.get("data") or {}).get("stack")
+            if data_stack is not None and results.get("stack") is not None:
+                if stack_label(data_stack) != stack_label(results["stack"]):
+                    out.append(
+                        f"{results['algo']} seed {results['seed']} on {dataset} was trained on data made on "
+                        f"{stack_label(data_stack)} and evaluated on {stack_label(results['stack'])}"
+                    )
+    for dataset, stacks in sorted(by_dataset.items()):
+        if len(stacks) > 1:
+            out.append(
+                f"the runs on {dataset} come from {len(stacks)} software stacks, whose simulators differ: "
+                + "; ".join(f"{count} on {name}" for name, count in sorted(stacks.items()))
+            )
+    return out
+
+
 def summarize(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, str], dict]:
     """Per group: seeds and mean / standard error of each metric's per-seed aggregate."""
     out = {}
     for key, group in runs.items():
         row = {
             "seeds": [r["seed"] for r in group],
+            "stacks": sorted({run_stack(r) for r in group}),
             "minutes": sum(r["total_seconds"] for r in group) / 60,
             "per_seed": [
                 (r["aggregate"]["normalized_feasible_return"], r["aggregate"]["normalized_cost"])
@@ -150,7 +186,8 @@ def markdown(summary: dict[tuple[str, str], dict]) -> str:
                     else "- |"
                 )
             )
-        lines.append("")
+        stacks = sorted({name for (d, a), row in summary.items() if d == dataset for name in row["stacks"]})
+        lines += ["", f"Stack: {' and '.join(stacks)}.", ""]
     lines.append(
         "Bold: safe on average (normalised cost <= 1). Each seed contributes the mean of its last "
         "evaluations (results.json `aggregate`); ± is the standard error over seeds. Last column (DICE methods, "
@@ -198,6 +235,8 @@ def main() -> None:
         parser.error(str(error))
     for path, reason in skipped:
         print(f"skipped {path.parent}: {reason}", file=sys.stderr)
+    for line in stack_warnings(runs):
+        print(f"warning: {line}", file=sys.stderr)
     if not runs:
         raise SystemExit(f"no finished results.json under {', '.join(map(str, args.folders))}")
     summary = summarize(runs)

@@ -58,6 +58,7 @@ from spoil_torchrl.data.prepare import prepare_dataset
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.eval.evaluator import METRICS
+from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import CompiledStepper, offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
@@ -68,11 +69,7 @@ from spoil_torchrl.trainers.checkpoint import (
     set_rng_state,
 )
 from spoil_torchrl.trainers.precision import matmul_precision
-from spoil_torchrl.trainers.resume import (
-    pretraining_fingerprint,
-    settings_differ,
-    trim_csv_logs,
-)
+from spoil_torchrl.trainers.resume import check_resumable, pretraining_fingerprint, trim_csv_logs
 from spoil_torchrl.trainers.run_dir import (
     CHECKPOINT_NAME,
     RunDirError,
@@ -135,12 +132,7 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
     state = None
     if checkpoint is not None:  # the checkpoint of an evaluation, made with the same settings
         state = load_checkpoint(checkpoint)
-        differ = settings_differ(state["config_yaml"], config_yaml)
-        if differ:
-            raise CheckpointError(
-                f"{run_dir}: resume=true with other settings than the run's ({', '.join(differ)}); resume "
-                "with the run's own settings (its config.yaml) or start a new run"
-            )
+        check_resumable(state, config_yaml, run_dir)
     (run_dir / "config.yaml").write_text(config_yaml)
     config_hash = hashlib.sha256(config_yaml.encode()).hexdigest()[:12]
     task = get_env_task(cfg.task.env_id)
@@ -204,6 +196,7 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
             "env_id": task.env_id,
             "seed": int(cfg.seed),
             "config_hash": config_hash,
+            "stack": current_stack(),  # the versions that decide the numbers (spoil_torchrl.stack)
             "data": data.summary(),
             "status": "pre-training",
             "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)

@@ -4,6 +4,7 @@ that run from an installed copy with no clone."""
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import subprocess
 import sys
@@ -89,14 +90,27 @@ def test_installed_train_composes_its_config_from_the_package(installed, tmp_pat
 
 @pytest.mark.slow
 def test_pip_install_in_a_fresh_venv_runs_train_and_report(tmp_path):
-    """What a user without the Makefile does: a fresh venv, the CPU torch, ``pip install .[safety]`` (plus
-    safety-gymnasium without its pins, as the README says), then ``spoil-train`` and ``spoil-report``."""
+    """What a user without the Makefile does: a fresh venv, the CPU torch, ``pip install .[safety,minari]``
+    (plus safety-gymnasium without its pins, as the README says), which gives the default stack (gymnasium 1.x,
+    numpy 2, Minari 0.5.4) in one environment, then ``spoil-train`` and ``spoil-report``."""
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
     pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet", "--disable-pip-version-check"]
     subprocess.run([*pip, os.environ.get("TORCH_SPEC", "torch==2.13.0")], check=True, timeout=1800)
-    subprocess.run([*pip, f"{ROOT}[safety]"], check=True, timeout=1800)
+    subprocess.run([*pip, f"{ROOT}[safety,minari]"], check=True, timeout=1800)
     subprocess.run([*pip, "--no-deps", "safety-gymnasium==1.0.0"], check=True, timeout=900)
+    code = (
+        "import json; from importlib.metadata import version as v\n"
+        "print(json.dumps({n: v(n) for n in ('gymnasium', 'numpy', 'minari', 'mujoco', 'safety-gymnasium')}))\n"
+    )
+    versions = json.loads(
+        subprocess.run([str(venv / "bin" / "python"), "-c", code], capture_output=True, text=True).stdout
+    )
+    assert versions["gymnasium"].startswith("1.") and versions["numpy"].startswith("2.")
+    assert versions["minari"] == "0.5.4" and versions["safety-gymnasium"] == "1.0.0"
+    imports = "import minari, spoil_torchrl.envs as e; e.import_safety_gymnasium(); print(e.applied_patches())"
+    proc = subprocess.run([str(venv / "bin" / "python"), "-c", imports], capture_output=True, text=True)
+    assert proc.returncode == 0 and "quaternion-reset" in proc.stdout, proc.stderr[-2000:]
     runs = tmp_path / "runs"
     train = [
         str(venv / "bin" / "spoil-train"),

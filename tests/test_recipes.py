@@ -88,6 +88,7 @@ def _dsrl_recipe(tmp_path, dataset, *overrides):
 def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     from spoil_torchrl.eval import read_rollouts
     from spoil_torchrl.experts import load_policy
+    from spoil_torchrl.stack import current_stack
 
     proc, results = _dsrl_recipe(
         tmp_path, tiny_pc1_dataset, "train.compile=true", "train.matmul_precision=medium"
@@ -103,6 +104,7 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     assert set(results["aggregate"]) >= {"normalized_feasible_return", "normalized_cost", "feasible_return"}
     assert 0.0 < results["diagnostics"]["support_share_unlabeled"] <= 1.0
     assert results["data"]["safe"]["episodes"] == 2
+    assert results["stack"] == current_stack() and results["data"]["stack"] == current_stack()
     rollouts = read_rollouts(tmp_path / "rollouts.mcap")
     assert rollouts.episodes.shape[0] == 2 and rollouts.metadata["algo"] == "spoildice"
     _, meta = load_policy(tmp_path / "checkpoints" / "policy.pt", env_id="SafetyPointCircle1-v0")

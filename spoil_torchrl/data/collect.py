@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 
 from spoil_torchrl.data.hdf5 import write_dsrl_file
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
+from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers.precision import intra_op_threads, matmul_precision
 
@@ -278,8 +279,9 @@ def collect(
 
     The metadata (see :func:`~spoil_torchrl.data.read_metadata`) holds ``env_id``, ``seed``, ``num_envs``,
     ``cost_threshold`` (the task's episode-cost limit), ``segments`` (label, policy, episode range
-    ``[start, stop)``, mean return and cost), ``random_return`` / ``safe_high_return``, the wall time, and
-    ``metadata``'s entries.
+    ``[start, stop)``, mean return and cost), ``random_return`` / ``safe_high_return``, the wall time, the
+    software stack it was made on (``stack``: :func:`spoil_torchrl.stack.current_stack`), and ``metadata``'s
+    entries.
     """
     task = get_env_task(env_id)
     if not segments:
@@ -294,6 +296,7 @@ def collect(
         "safe_high_return",
         "seconds",
         "steps",
+        "stack",
     }
     clash = reserved & set(metadata or {})
     if clash:
@@ -362,6 +365,7 @@ def collect(
         **references,
         "seconds": time.perf_counter() - start_time,
         "steps": int(arrays["rewards"].shape[0]),
+        "stack": current_stack(),
         **(metadata or {}),
     }
     return write_dsrl_file(path, arrays, metadata=meta)

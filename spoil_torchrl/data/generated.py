@@ -27,6 +27,7 @@ from pathlib import Path
 
 from spoil_torchrl.data.collect import RANDOM_POLICY, Segment, collect
 from spoil_torchrl.data.labeling import POOLS
+from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 
 
 @dataclass(frozen=True)
@@ -134,7 +135,9 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
 
     Making it rolls out the committed policies (needs the ``safety`` extra); the file appears only once it is
     complete. A cached file made from a different recipe (another segment list, seed or ``num_envs``: its
-    metadata's ``fingerprint`` differs) is made again. Two processes making the same dataset at once both
+    metadata's ``fingerprint`` differs) or on another software stack (its ``stack``:
+    :func:`spoil_torchrl.stack.stack_differences`; the physics differ between MuJoCo releases) is made again,
+    with a line that says why. Two processes making the same dataset at once both
     work, and the last one to finish leaves its (identical) file. Examples are in ``recipes/collect_demos.py``
     and the tests.
     """
@@ -144,13 +147,21 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
     path = generated_path(name)
     fingerprint = spec.fingerprint(num_envs)
     if path.exists() and not force:
-        cached = read_metadata(path).get("fingerprint")
-        if cached == fingerprint:
+        cached = read_metadata(path)
+        other_stack = stack_differences(cached.get("stack"))
+        if cached.get("fingerprint") == fingerprint and not other_stack:
             return path
-        print(
-            f"{path}: made by another recipe (fingerprint {cached}, now {fingerprint}: the segments, seed or "
-            "num_envs changed); making it again"
-        )
+        if cached.get("fingerprint") != fingerprint:
+            print(
+                f"{path}: made by another recipe (fingerprint {cached.get('fingerprint')}, now {fingerprint}: the "
+                "segments, seed or num_envs changed); making it again"
+            )
+        else:
+            print(
+                f"{path}: made on another software stack ({stack_label(cached.get('stack'))}; here "
+                f"{stack_label(current_stack())}: {', '.join(other_stack)}), whose simulator gives other "
+                "episodes; making it again for this stack"
+            )
     return collect(
         spec.env_id,
         spec.segments,

@@ -3,6 +3,7 @@ and the return normalisation (paper F.1 for IL-SP labelling, F.2 for controlled 
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -14,6 +15,7 @@ from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.generated import ensure_generated
 from spoil_torchrl.data.labeling import controlled_mix, draw, episode_stats, label_ilsp
 from spoil_torchrl.data.load import load_episodes, parse_source, read_source_metadata
+from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.tasks import ENV_TASKS, get_dsrl_dataset
 
 SCHEMES = ("ilsp", "controlled", "stored")
@@ -38,6 +40,7 @@ class PreparedDataset:
             "env_id": self.env_id,
             "cost_threshold": self.cost_threshold,
             "return_range": self.return_range,
+            "stack": self.metadata.get("stack"),  # what the data were made on (None: not recorded)
         }
         for role, ids in self.roles.items():
             out[role] = {
@@ -195,6 +198,13 @@ def prepare_dataset(
         ensure_generated(rest, progress=progress)
     episodes = load_episodes(source, progress=progress)
     metadata = read_source_metadata(source)
+    if metadata.get("stack") is not None and stack_differences(metadata["stack"]):
+        warnings.warn(
+            f"{source} was made on another software stack ({stack_label(metadata['stack'])}; here "
+            f"{stack_label(current_stack())}): its episodes come from other physics than this run's "
+            "evaluations (results.json records both stacks; spoil-report flags the run)",
+            stacklevel=2,
+        )
     source_env, source_threshold, source_range = _source_constants(source, metadata)
     if env_id is not None and source_env is not None and source_env != env_id:
         raise DatasetError(f"dataset {source} was recorded in {source_env}, but the task is {env_id}")

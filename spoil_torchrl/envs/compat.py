@@ -1,122 +1,144 @@
-"""Importing safety-gymnasium 1.0.0 on Python >= 3.11, and an optional fast reset.
+"""Importing safety-gymnasium 1.0.0 on today's stack: the patches, each gated on the version that needs it.
 
-**The upstream problem.** safety-gymnasium 1.0.0 (its latest release, 2023) declares dataclass fields whose
-defaults are NumPy arrays taken from ``safety_gymnasium/assets/color.py`` (e.g. ``color: np.ndarray =
-COLOR['hazard']``). Python 3.11 made ``dataclasses`` reject unhashable defaults ("mutable default <class
-'numpy.ndarray'> for field color is not allowed: use default_factory"), so ``import safety_gymnasium`` fails
-there; the same error breaks safety-gymnasium 0.4 and with it the ``dsrl`` package. (Its ``group.py`` table
-holds ints and needs nothing.)
+safety-gymnasium's only release (1.0.0, 2023) was written against gymnasium 0.28 / 0.29, MuJoCo 2.3, NumPy 1
+and Python 3.10. :func:`import_safety_gymnasium` imports it with the patches of :data:`PATCHES` that the
+installed versions need (each one's gate), so that the same package works on the default stack (gymnasium
+1.x, MuJoCo 3, NumPy 2) and on the legacy one. On the legacy stack (gymnasium 0.29.1, MuJoCo 2.3.7, NumPy
+1.26.4, Python 3.11) only the first applies. Every patch leaves the physics, rewards and costs of the task as
+the installed simulator computes them; what each one fixes, and the upstream line it patches, is in
+:mod:`spoil_torchrl.envs.patches` and in ``docs/usage.md`` ("Stacks").
 
-**The fix.** Before the package is imported, :func:`import_safety_gymnasium` loads ``assets/color.py`` by
-itself and replaces each colour by a view of the same array whose class defines ``__hash__``. The arrays, and
-so the rendered colours and the vision observations, are unchanged; rewards and costs are identical to a
-Python 3.10 run (measured). The module is registered in ``sys.modules`` under its real name, so
-the package then imports the patched table.
+``SPOIL_TORCHRL_SKIP_PATCHES=<name>[,<name>...]`` leaves patches out (for checking that a patch is still
+needed; the tests do it in a fresh process).
 
-**Fast reset (rendering only).** Navigation tasks rebuild their MuJoCo model at every reset and decode a 24 MB
-star-field skybox PNG each time (about 0.6 s per reset). :func:`enable_fast_reset` makes the world builder use
-a built-in gradient skybox instead. Physics, observations of the non-vision tasks, rewards and costs do not
-depend on the skybox; only rendered images change. It is on for headless collection and evaluation.
+Example:
+    >>> sg = import_safety_gymnasium()  # doctest: +SKIP
+    >>> "hashable-colours" in applied_patches()  # doctest: +SKIP
+    True
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
 import sys
-from pathlib import Path
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
 from types import ModuleType
 
-import numpy as np
+from packaging.version import Version
 
-COLOR_MODULE = "safety_gymnasium.assets.color"
+from spoil_torchrl.envs import patches
+
+__all__ = ["INSTALL_HINT", "PATCHES", "Patch", "applied_patches", "import_safety_gymnasium", "needed_patches"]
+
 INSTALL_HINT = (
-    "safety-gymnasium is not installed. `make setup` installs it (see CONTRIBUTING.md: it needs gymnasium "
-    "0.29.1, mujoco 2.3.7 and numpy 1.26, then `pip install --no-deps safety-gymnasium==1.0.0`)"
+    "safety-gymnasium is not installed. `make setup` installs it (CONTRIBUTING.md, 'Stacks': the `safety` "
+    "extra, then `pip install --no-deps safety-gymnasium==1.0.0`, which would otherwise pin gymnasium 0.28.1)"
 )
 
-
-class HashableArray(np.ndarray):
-    """An ndarray view that dataclasses accept as a default (identity hash, like any plain object)."""
-
-    __hash__ = object.__hash__
+#: Names of the patches to leave out, comma-separated (tests only).
+SKIP_ENV = "SPOIL_TORCHRL_SKIP_PATCHES"
 
 
-def _preload_hashable_colors() -> None:
-    spec = importlib.util.find_spec("safety_gymnasium")
-    if spec is None or spec.origin is None:
-        raise ImportError(INSTALL_HINT)
-    path = Path(spec.origin).parent / "assets" / "color.py"
-    module_spec = importlib.util.spec_from_file_location(COLOR_MODULE, path)
-    module = importlib.util.module_from_spec(module_spec)
-    module_spec.loader.exec_module(module)
-    module.COLOR = {name: np.asarray(rgba).view(HashableArray) for name, rgba in module.COLOR.items()}
-    sys.modules[COLOR_MODULE] = module
+def installed_version(distribution: str) -> Version | None:
+    """The installed version of ``distribution`` (``None`` when it is not installed)."""
+    try:
+        return Version(metadata.version(distribution))
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _at_least(distribution: str, version: str) -> Callable[[], bool]:
+    def gate() -> bool:
+        found = installed_version(distribution)
+        return found is not None and found >= Version(version)
+
+    gate.__doc__ = f"{distribution} >= {version}"
+    return gate
+
+
+def _python_at_least(major: int, minor: int) -> Callable[[], bool]:
+    def gate() -> bool:
+        return sys.version_info >= (major, minor)
+
+    gate.__doc__ = f"Python >= {major}.{minor}"
+    return gate
+
+
+@dataclass(frozen=True)
+class Patch:
+    """One fix of safety-gymnasium 1.0.0 for a newer dependency.
+
+    Attributes:
+        name: what ``SPOIL_TORCHRL_SKIP_PATCHES`` and :func:`applied_patches` call it.
+        needed: the gate: true when the installed version has the break.
+        apply: the fix (``before_import``: run before ``import safety_gymnasium``, else after it).
+        before_import: whether the package cannot be imported without it.
+    """
+
+    name: str
+    needed: Callable[[], bool]
+    apply: Callable[[], None]
+    before_import: bool = False
+
+    @property
+    def gate(self) -> str:
+        return self.needed.__doc__ or ""
+
+
+#: The patches, in the order they are applied (docstrings of :mod:`spoil_torchrl.envs.patches`).
+PATCHES: tuple[Patch, ...] = (
+    Patch("hashable-colours", _python_at_least(3, 11), patches.hashable_colours, before_import=True),
+    Patch("wrapper-modules", _at_least("gymnasium", "1.0"), patches.wrapper_modules, before_import=True),
+    Patch("envspec-fields", _at_least("gymnasium", "1.0"), patches.envspec_fields),
+    Patch("array-copy", _at_least("numpy", "2.0"), patches.array_copy),
+    Patch("box-overflow", _at_least("numpy", "2.0"), patches.box_overflow),
+    Patch("settotalmass-notice", _at_least("mujoco", "3.0"), patches.settotalmass_notice),
+    Patch("quaternion-reset", _at_least("mujoco", "3.2"), patches.quaternion_reset),
+    Patch("offscreen-size", _at_least("gymnasium", "1.0"), patches.offscreen_size),
+    Patch("track-camera", _at_least("gymnasium", "1.0"), patches.track_camera),
+)
+
+_APPLIED: list[str] = []
+_IMPORTED: list[ModuleType] = []  # the patched module, once imported
+
+
+def needed_patches() -> list[Patch]:
+    """The patches the installed versions need, less those named in ``SPOIL_TORCHRL_SKIP_PATCHES``."""
+    skip = {name.strip() for name in os.environ.get(SKIP_ENV, "").split(",") if name.strip()}
+    unknown = skip - {p.name for p in PATCHES}
+    if unknown:
+        raise ValueError(f"{SKIP_ENV}: unknown patch {sorted(unknown)}; known: {[p.name for p in PATCHES]}")
+    return [p for p in PATCHES if p.name not in skip and p.needed()]
+
+
+def applied_patches() -> list[str]:
+    """The names of the patches :func:`import_safety_gymnasium` applied in this process."""
+    return list(_APPLIED)
 
 
 def import_safety_gymnasium() -> ModuleType:
-    """``import safety_gymnasium``, working around its Python >= 3.11 dataclass error (see module docstring).
+    """``import safety_gymnasium`` with the patches the installed stack needs (see module docstring).
 
     Raises ``ImportError`` with install instructions when the package is missing.
     """
-    if "safety_gymnasium" in sys.modules:
-        return sys.modules["safety_gymnasium"]
-    if sys.version_info >= (3, 11) and COLOR_MODULE not in sys.modules:
-        _preload_hashable_colors()
+    if _IMPORTED:
+        return _IMPORTED[0]
+    if importlib.util.find_spec("safety_gymnasium") is None:
+        raise ImportError(INSTALL_HINT)
+    todo = needed_patches()
+    for patch in (p for p in todo if p.before_import and p.name not in _APPLIED):
+        patch.apply()
+        _APPLIED.append(patch.name)
     try:
-        return importlib.import_module("safety_gymnasium")
+        module = importlib.import_module("safety_gymnasium")
     except ImportError as err:
         raise ImportError(f"{INSTALL_HINT} ({err})") from err
-
-
-class _FastSkyboxYaml:
-    """Stands in for the ``yaml`` module inside ``safety_gymnasium.world``: parses ``assets.yaml`` once and
-    swaps the star-field skybox files for MuJoCo's built-in gradient."""
-
-    def __init__(self, yaml_module: ModuleType) -> None:
-        self._yaml = yaml_module
-        self.FullLoader = yaml_module.FullLoader
-        self._cache: dict[str, object] = {}
-
-    def load(self, stream, Loader=None):  # noqa: N803 - yaml's signature
-        name = getattr(stream, "name", None)
-        if name is None or not str(name).endswith("assets.yaml"):
-            return self._yaml.load(stream, Loader=Loader)
-        if name not in self._cache:
-            config = self._yaml.load(stream, Loader=Loader)
-            config["textures"]["skybox"] = {
-                "@type": "skybox",
-                "@builtin": "gradient",
-                "@rgb1": ".4 .6 .8",
-                "@rgb2": "0 0 0",
-                "@width": "32",
-                "@height": "32",
-            }
-            self._cache[name] = config
-        import copy
-
-        return copy.deepcopy(self._cache[name])
-
-    def __getattr__(self, item):
-        return getattr(self._yaml, item)
-
-
-def enable_fast_reset() -> None:
-    """Make navigation-task resets skip the 24 MB skybox PNG (rendering only; see module docstring)."""
-    import_safety_gymnasium()
-    world = importlib.import_module("safety_gymnasium.world")
-    if not isinstance(world.yaml, _FastSkyboxYaml):
-        world.yaml = _FastSkyboxYaml(world.yaml)
-
-
-def disable_fast_reset() -> None:
-    """Undo :func:`enable_fast_reset` (the original star-field skybox is loaded again)."""
-    world = sys.modules.get("safety_gymnasium.world")
-    if world is not None and isinstance(world.yaml, _FastSkyboxYaml):
-        world.yaml = world.yaml._yaml
-
-
-def fast_reset_enabled() -> bool:
-    """Whether :func:`enable_fast_reset` is in effect."""
-    world = sys.modules.get("safety_gymnasium.world")
-    return world is not None and isinstance(world.yaml, _FastSkyboxYaml)
+    for patch in (p for p in todo if not p.before_import and p.name not in _APPLIED):
+        patch.apply()
+        _APPLIED.append(patch.name)
+    _IMPORTED.append(module)
+    return module

@@ -8,7 +8,8 @@ import torch
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv, default_info_dict_reader
 
-from spoil_torchrl.envs.compat import disable_fast_reset, enable_fast_reset, import_safety_gymnasium
+from spoil_torchrl.envs.compat import import_safety_gymnasium
+from spoil_torchrl.envs.fast_reset import disable_fast_reset, enable_fast_reset
 from spoil_torchrl.tasks import get_env_task
 
 
@@ -50,7 +51,7 @@ def make_env(
 
     Observations are float32; ``("next", "cost")`` is float32 with a trailing dim of 1, like the reward.
     ``fast_reset`` swaps the navigation tasks' skybox texture (rendering only, see
-    :mod:`spoil_torchrl.envs.compat`).
+    :mod:`spoil_torchrl.envs.fast_reset`).
 
     Examples:
         >>> env = make_env("SafetyPointCircle1-v0", seed=0)

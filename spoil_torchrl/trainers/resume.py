@@ -20,6 +20,8 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from spoil_torchrl.files import update_digest, write_atomic
+from spoil_torchrl.stack import current_stack, stack_differences, stack_label
+from spoil_torchrl.trainers.checkpoint import CheckpointError
 
 #: Settings that may change between a run and its resumption (they do not change what is trained).
 RESUMABLE_CHANGES = ("progress",)
@@ -74,6 +76,35 @@ def settings_differ(
     old, new = flat(load(old_yaml)), flat(load(new_yaml))
     keys = sorted(set(old) | set(new))
     return [k for k in keys if old.get(k) != new.get(k) and k.split(".")[0] not in allowed]
+
+
+def check_resumable(state: Mapping, config_yaml: str, run_dir: str | os.PathLike) -> None:
+    """Refuse (``CheckpointError``) to resume from a checkpoint ``state`` with other settings than
+    ``config_yaml`` (:func:`settings_differ`) or on another software stack than the run's (its
+    ``results.json``'s ``stack``, :mod:`spoil_torchrl.stack`: the simulator's physics differ). A run made before
+    runs recorded their stack is not checked for it.
+
+    Examples:
+        >>> state = {"config_yaml": "seed: 0", "results": {"stack": dict(current_stack(), mujoco="0.1")}}
+        >>> check_resumable(state, "seed: 0", "run")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.trainers.checkpoint.CheckpointError: run: made on another software stack ...
+    """
+    differ = settings_differ(state["config_yaml"], config_yaml)
+    if differ:
+        raise CheckpointError(
+            f"{run_dir}: resume=true with other settings than the run's ({', '.join(differ)}); resume "
+            "with the run's own settings (its config.yaml) or start a new run"
+        )
+    recorded = state.get("results", {}).get("stack")
+    if recorded is not None and stack_differences(recorded):
+        raise CheckpointError(
+            f"{run_dir}: made on another software stack ({stack_label(recorded)}; here "
+            f"{stack_label(current_stack())}: {', '.join(stack_differences(recorded))}), whose simulator "
+            "evaluates differently; resume it on its own stack (make STACK=legacy for the legacy one) or start "
+            "a new run"
+        )
 
 
 def csv_row_counts(log_dir: str | os.PathLike) -> dict[str, int]:

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -18,8 +20,10 @@ from spoil_torchrl.data import (
     segment_pools,
 )
 from spoil_torchrl.data import generated as generated_module
+from spoil_torchrl.data.hdf5 import METADATA_ATTR
 from spoil_torchrl.experts import zoo_policy
 from spoil_torchrl.experts.policies import load_policy
+from spoil_torchrl.stack import current_stack
 
 # the package re-exports the function collect(), which hides the module of the same name
 collect_module = importlib.import_module("spoil_torchrl.data.collect")
@@ -145,7 +149,7 @@ def test_unknown_zoo_policy_names_the_available_ones():
         collect_module.resolve_policy("zoo:nope", ENV)
 
 
-def test_ensure_generated_makes_once_then_reuses(tmp_path, monkeypatch):
+def test_ensure_generated_makes_once_then_reuses(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("SPOIL_TORCHRL_DATA_DIR", str(tmp_path))
     tiny = generated_module.GeneratedDataset(
         "tiny", ENV, (Segment("unsafe-medium", "zoo:unsafe-medium", 1),), "test"
@@ -168,5 +172,14 @@ def test_ensure_generated_makes_once_then_reuses(tmp_path, monkeypatch):
     # a cached file from another recipe (here: another num_envs) is made again, not silently reused
     generated_module.ensure_generated("tiny", num_envs=2, progress=False)
     assert len(made) == 2 and read_metadata(path)["num_envs"] == 2
+    # a cached file made on another software stack is made again, with a line that says why
+    assert read_metadata(path)["stack"] == current_stack()
+    with h5py.File(path, "r+") as f:
+        meta = json.loads(f.attrs[METADATA_ATTR])
+        meta["stack"] = dict(meta["stack"], mujoco="0.0.1")  # a simulator this process does not have
+        f.attrs[METADATA_ATTR] = json.dumps(meta)
+    generated_module.ensure_generated("tiny", num_envs=2, progress=False)
+    assert "made on another software stack" in capsys.readouterr().out
+    assert len(made) == 3 and read_metadata(path)["stack"] == current_stack()
     with pytest.raises(KeyError, match="point-circle1-mixed"):
         generated_module.get_generated("nope")

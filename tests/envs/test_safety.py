@@ -1,9 +1,12 @@
-"""Safety-Gymnasium environments: the Python >= 3.11 import fix, specs, the cost key and the tasks' cost rules."""
+"""Safety-Gymnasium environments: the six controlled tasks, specs, the cost key and the tasks' cost rules."""
 
 from __future__ import annotations
 
 import importlib.util
+import os
+import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,15 +17,59 @@ pytestmark = pytest.mark.skipif(
 )
 
 
-def test_import_fix_makes_colours_hashable_and_keeps_their_values():
-    from spoil_torchrl.envs import import_safety_gymnasium
-    from spoil_torchrl.envs.compat import COLOR_MODULE, HashableArray
+#: The six tasks of the paper's controlled experiments.
+CONTROLLED_TASKS = (
+    "SafetyPointCircle1-v0",
+    "SafetyPointCircle2-v0",
+    "SafetyHopperVelocity-v1",
+    "SafetyHalfCheetahVelocity-v1",
+    "SafetyWalker2dVelocity-v1",
+    "SafetyAntVelocity-v1",
+)
 
-    sg = import_safety_gymnasium()
-    colors = sys.modules[COLOR_MODULE].COLOR
-    assert all(isinstance(v, HashableArray) and hash(v) for v in colors.values())
-    np.testing.assert_array_equal(np.asarray(colors["hazard"]), [0, 0, 1, 0.25])
-    assert hasattr(sg, "make")
+
+@pytest.mark.parametrize("env_id", CONTROLLED_TASKS)
+def test_the_controlled_tasks_reset_step_and_render(env_id):
+    from spoil_torchrl.eval.env_scene import make_render_env
+    from spoil_torchrl.tasks import get_env_task
+
+    try:
+        env = make_render_env(env_id, 48)  # resets and renders once, or says why it cannot
+    except RuntimeError as err:
+        if "OpenGL" in str(err) and "TypeError" not in str(err):
+            pytest.skip(f"no OpenGL context here: {err}")
+        raise
+    try:
+        task = get_env_task(env_id)
+        obs, _ = env.reset(seed=1)
+        assert obs.shape == (task.observation_dim,)
+        rng = np.random.default_rng(0)
+        first = env.render()
+        for _ in range(20):
+            obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, task.action_dim))
+            assert np.isfinite(obs).all() and np.isfinite(reward) and info["cost"].shape == (1,)
+        frame = env.render()
+        assert frame.shape == (48, 48, 3) and frame.dtype == np.uint8 and frame.std() > 0
+        assert not np.array_equal(frame, first)  # the scene moved
+    finally:
+        env.close()
+
+
+def test_navigation_frames_without_the_offscreen_size_patch_fail(tmp_path):
+    from spoil_torchrl.envs.compat import PATCHES
+
+    if not next(p for p in PATCHES if p.name == "offscreen-size").needed():
+        pytest.skip("offscreen-size not needed here (gymnasium < 1.0)")
+    code = (
+        "from spoil_torchrl.eval.env_scene import make_render_env\n"
+        "make_render_env('SafetyPointCircle1-v0', 32)\n"
+    )
+    root = str(Path(__file__).resolve().parents[2])
+    env = dict(os.environ, SPOIL_TORCHRL_SKIP_PATCHES="offscreen-size", PYTHONPATH=root)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path
+    )
+    assert proc.returncode != 0 and "TypeError" in proc.stderr and "width" in proc.stderr
 
 
 @pytest.mark.parametrize("env_id", ["SafetyPointCircle1-v0", "SafetyHalfCheetahVelocity-v1"])
@@ -82,7 +129,7 @@ def test_velocity_cost_is_speeding():
 
 def test_fast_reset_changes_no_physics():
     from spoil_torchrl.envs import make_safety_gymnasium
-    from spoil_torchrl.envs.compat import fast_reset_enabled
+    from spoil_torchrl.envs.fast_reset import fast_reset_enabled
 
     def trajectory(fast: bool):
         env = make_safety_gymnasium("SafetyPointCircle1-v0", fast_reset=fast)
