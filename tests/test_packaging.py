@@ -108,7 +108,9 @@ def test_pip_install_in_a_fresh_venv_runs_train_and_report(tmp_path):
     )
     assert versions["gymnasium"].startswith("1.") and versions["numpy"].startswith("2.")
     assert versions["minari"] == "0.5.4" and versions["safety-gymnasium"] == "1.0.0"
-    imports = "import minari, spoil_torchrl.envs as e; e.import_safety_gymnasium(); print(e.applied_patches())"
+    imports = (
+        "import minari, spoil_torchrl.envs as e; e.import_safety_gymnasium(); print(e.applied_patches())"
+    )
     proc = subprocess.run([str(venv / "bin" / "python"), "-c", imports], capture_output=True, text=True)
     assert proc.returncode == 0 and "quaternion-reset" in proc.stdout, proc.stderr[-2000:]
     runs = tmp_path / "runs"

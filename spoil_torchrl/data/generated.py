@@ -156,6 +156,10 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
                 f"{path}: made by another recipe (fingerprint {cached.get('fingerprint')}, now {fingerprint}: the "
                 "segments, seed or num_envs changed); making it again"
             )
+        elif cached.get("stack") is None:
+            print(
+                f"{path}: made before datasets recorded their software stack; making it again for this stack"
+            )
         else:
             print(
                 f"{path}: made on another software stack ({stack_label(cached.get('stack'))}; here "
