@@ -12,9 +12,9 @@ the installed simulator computes them; what each one fixes, and the upstream lin
 needed; the tests do it in a fresh process).
 
 Example:
-    >>> sg = import_safety_gymnasium()  # doctest: +SKIP
-    >>> "hashable-colours" in applied_patches()  # doctest: +SKIP
-    True
+    >>> [(patch.name, patch.gate) for patch in PATCHES[:2]]
+    [('hashable-colours', 'Python >= 3.11'), ('wrapper-modules', 'gymnasium >= 1.0')]
+    >>> needed = [patch.name for patch in needed_patches()]  # what ``import_safety_gymnasium()`` applies here
 """
 
 from __future__ import annotations
