@@ -181,7 +181,9 @@ def box_overflow() -> None:
     base_agent.BaseAgent._build_action_space = build
 
 
-def _velocity_classes() -> list[type]:
+@functools.cache
+def _velocity_classes() -> tuple[type, ...]:
+    """safety-gymnasium's velocity-task classes (found once; three patches wrap them)."""
     classes = []
     for name in VELOCITY_MODULES:
         module = importlib.import_module(name)
@@ -190,7 +192,7 @@ def _velocity_classes() -> list[type]:
             for key, obj in vars(module).items()
             if key.startswith("Safety") and isinstance(obj, type) and obj.__module__ == name
         ]
-    return classes
+    return tuple(classes)
 
 
 def _filter_mujoco_warnings(drop: str):

@@ -98,10 +98,11 @@ def check_resumable(state: Mapping, config_yaml: str, run_dir: str | os.PathLike
             "with the run's own settings (its config.yaml) or start a new run"
         )
     recorded = state.get("results", {}).get("stack")
-    if recorded is not None and stack_differences(recorded):
+    differences = [] if recorded is None else stack_differences(recorded)
+    if differences:
         raise CheckpointError(
             f"{run_dir}: made on another software stack ({stack_label(recorded)}; here "
-            f"{stack_label(current_stack())}: {', '.join(stack_differences(recorded))}), whose simulator "
+            f"{stack_label(current_stack())}: {', '.join(differences)}), whose simulator "
             "evaluates differently; resume it on its own stack (make STACK=legacy for the legacy one) or start "
             "a new run"
         )
