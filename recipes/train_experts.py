@@ -2,12 +2,20 @@
 task and checkpoint it periodically (actor weights + the batch's mean episode return and cost).
 
     python recipes/train_experts.py env_id=SafetyPointCircle1-v0 ppo.lagrangian=true
+    python recipes/train_experts.py env_id=SafetyHopperVelocity-v1 hydra.run.dir=runs/experts/hopper-ppo resume=auto
+
+Training is resumable: with ``resume=true`` (or ``auto``, which also starts a new run) and the run's
+``hydra.run.dir``, a killed or interrupted run continues from its last training state (every
+``ppo.checkpoint_every`` batches) and ends with the same policies as an uninterrupted run; ``resume=auto`` on a
+finished run does nothing, so a list of runs can be started again until all have finished.
 """
 
 from __future__ import annotations
 
 import functools
 import logging
+import os
+import sys
 from pathlib import Path
 
 import hydra
@@ -17,26 +25,55 @@ from omegaconf import DictConfig, OmegaConf
 
 from spoil_torchrl.envs import make_env
 from spoil_torchrl.experts import PPOConfig, train_ppo
-from spoil_torchrl.tasks import get_env_task
+from spoil_torchrl.experts.ppo import TrainingDiverged
+from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
+from spoil_torchrl.trainers import stop_on_signals
+from spoil_torchrl.trainers.checkpoint import CheckpointError
+from spoil_torchrl.trainers.run_dir import RunDirError, claim_run_dir, release_run_dir, run_status
+from spoil_torchrl.trainers.settings import SettingsError, check_settings
 
 log = logging.getLogger(__name__)
 
 
 @hydra.main(config_path="../configs", config_name="train_experts", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    torch.set_num_threads(cfg.threads)
-    task = get_env_task(cfg.env_id)
-    config = PPOConfig(**OmegaConf.to_container(cfg.ppo))
-    config.hidden_cells = tuple(config.hidden_cells)
+    stop_on_signals()  # SIGTERM ends training like Ctrl-C, the last training state intact
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    history = train_ppo(
-        functools.partial(make_env, task.env_id, seed=config.seed),
-        task.observation_dim,
-        task.action_dim,
-        config,
-        run_dir,
-        progress=cfg.progress,
-    )
+    try:
+        check_settings({"threads": cfg.threads})
+        task = get_env_task(cfg.env_id)
+        config = PPOConfig(**OmegaConf.to_container(cfg.ppo))
+        if cfg.resume == "auto" and run_status(run_dir) == "finished":  # a re-run sweep skips finished runs
+            log.info(f"{run_dir}: finished already; nothing to do")
+            return
+        resuming = claim_run_dir(run_dir, resume=cfg.resume)
+    except (SettingsError, RunDirError, UnknownDatasetError, ValueError) as err:
+        sys.exit(f"error: {err}")
+    torch.set_num_threads(cfg.threads)
+    try:
+        history = train_ppo(
+            functools.partial(make_env, task.env_id),
+            task.observation_dim,
+            task.action_dim,
+            config,
+            run_dir,
+            progress=cfg.progress,
+            resume=resuming,
+        )
+    except (CheckpointError, TrainingDiverged) as err:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        sys.exit(f"error: {err}")
+    except KeyboardInterrupt:
+        kept = [
+            o for o in HydraConfig.get().overrides.task if not o.startswith(("hydra.run.dir=", "resume="))
+        ]
+        sys.exit(
+            f"interrupted; continue with: python recipes/train_experts.py {' '.join(kept)} "
+            f"hydra.run.dir={run_dir} resume=true"
+        )
+    finally:
+        release_run_dir(run_dir)
     last = history[-1]
     log.info(
         f"{task.env_id}: {last['frames']} frames in {last['seconds']:.0f} s "

@@ -35,9 +35,12 @@ def test_episode_tracker_spans_batches():
     assert (ret, cost, n) == (5.0, 2.5, 2)
 
 
-@pytest.mark.skipif(
+needs_safety_gymnasium = pytest.mark.skipif(
     importlib.util.find_spec("safety_gymnasium") is None, reason="safety-gymnasium not installed"
 )
+
+
+@needs_safety_gymnasium
 @pytest.mark.parametrize("lagrangian", [False, True])
 def test_tiny_ppo_run_writes_checkpoints(tmp_path, lagrangian):
     from spoil_torchrl.envs import make_env
@@ -68,6 +71,108 @@ def test_tiny_ppo_run_writes_checkpoints(tmp_path, lagrangian):
         assert log[-1]["lagrange"] > 0
     else:
         assert log[-1]["lagrange"] == 0
+
+
+def _tiny_config(**changes):
+    base = dict(
+        total_frames=2000,
+        frames_per_batch=500,
+        epochs=1,
+        minibatch_size=250,
+        hidden_cells=(16,),
+        checkpoint_every=2,
+        record_episodes=1,
+        lagrangian=True,
+        cost_limit=0.0,
+    )
+    return PPOConfig(**(base | changes))
+
+
+def _train(run_dir, config, resume=False):
+    from spoil_torchrl.envs import make_env
+
+    return train_ppo(
+        functools.partial(make_env, "SafetyPointCircle1-v0"),
+        28,
+        2,
+        config,
+        run_dir,
+        progress=False,
+        resume=resume,
+    )
+
+
+def _without_times(path):
+    return [
+        {k: v for k, v in json.loads(line).items() if k != "seconds"}
+        for line in path.read_text().splitlines()
+    ]
+
+
+@needs_safety_gymnasium
+def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeypatch):
+    from spoil_torchrl.experts import ppo as ppo_module
+    from spoil_torchrl.experts.replay import read_replay
+
+    _train(tmp_path / "whole", _tiny_config())
+    update = ppo_module.ppo_update
+
+    def killed_in_batch_four(learner, batch, config, index, cost):
+        if index == 3:  # after batch 3 was logged, but the last training state is batch 2's
+            raise KeyboardInterrupt("killed")
+        update(learner, batch, config, index, cost)
+
+    monkeypatch.setattr(ppo_module, "ppo_update", killed_in_batch_four)
+    with pytest.raises(KeyboardInterrupt):
+        _train(tmp_path / "cut", _tiny_config())
+    assert json.loads((tmp_path / "cut" / "results.json").read_text())["status"] == "interrupted"
+    assert len(_without_times(tmp_path / "cut" / "log.jsonl")) == 3
+    monkeypatch.setattr(ppo_module, "ppo_update", update)
+    _train(tmp_path / "cut", _tiny_config(), resume=True)
+
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    names = sorted(p.name for p in whole.glob("ckpt_*.pt"))
+    assert names == sorted(p.name for p in cut.glob("ckpt_*.pt")) and len(names) == 2
+    for name in names:
+        a, b = torch.load(whole / name, weights_only=True), torch.load(cut / name, weights_only=True)
+        assert a.keys() == b.keys()
+        for key in a["actor"]:
+            assert torch.equal(a["actor"][key], b["actor"][key]), (name, key)
+    assert _without_times(cut / "log.jsonl") == _without_times(whole / "log.jsonl")  # every batch once
+    replay_a, replay_b = read_replay(whole / "replay"), read_replay(cut / "replay")
+    assert all((replay_a[k] == replay_b[k]).all() for k in replay_a) and set(replay_a["batch"]) == {
+        0,
+        1,
+        2,
+        3,
+    }
+    results = json.loads((cut / "results.json").read_text())
+    assert results["status"] == "finished" and results["resumed_at"] == [1000] and results["frames"] == 2000
+
+
+@needs_safety_gymnasium
+def test_resume_refuses_other_settings(tmp_path):
+    from spoil_torchrl.trainers.checkpoint import CheckpointError
+
+    _train(tmp_path, _tiny_config(total_frames=1000))
+    with pytest.raises(CheckpointError, match="ppo.actor_lr"):
+        _train(tmp_path, _tiny_config(total_frames=1000, actor_lr=1e-3), resume=True)
+
+
+@needs_safety_gymnasium
+def test_diverged_training_fails_with_one_line(tmp_path):
+    from spoil_torchrl.experts.ppo import TrainingDiverged
+
+    with pytest.raises(TrainingDiverged, match="batch 0: .* not finite"):
+        _train(tmp_path, _tiny_config(actor_lr=1e30, critic_lr=1e30, max_grad_norm=1e30))
+    assert json.loads((tmp_path / "results.json").read_text())["status"] == "failed"
+
+
+def test_ppo_config_refuses_impossible_sizes():
+    with pytest.raises(ValueError, match="minibatch_size = 2000 is larger"):
+        PPOConfig(frames_per_batch=1000, minibatch_size=2000)
+    with pytest.raises(ValueError, match="record_episodes"):
+        PPOConfig(record_episodes=-1)
 
 
 # --- committed policies ------------------------------------------------------------------------------------
@@ -127,3 +232,60 @@ def test_load_policy_reads_raw_training_checkpoints_and_rejects_junk(tmp_path):
         assert meta["info"]["x"] == 1 and meta["info"]["exported_from"] == "ckpt.pt"
     finally:
         policies_module.ZOO_DIR = policies_module_zoo
+
+
+# --- the recipe, killed for real ---------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@needs_safety_gymnasium
+def test_expert_recipe_killed_with_sigkill_resumes_exactly(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    args = [
+        sys.executable,
+        str(root / "recipes" / "train_experts.py"),
+        "ppo.total_frames=4000",
+        "ppo.frames_per_batch=500",
+        "ppo.minibatch_size=250",
+        "ppo.epochs=2",
+        "ppo.checkpoint_every=2",
+        "threads=1",
+        "progress=false",
+    ]
+
+    def start(run_dir, *extra):
+        return subprocess.Popen(
+            [*args, f"hydra.run.dir={run_dir}", *extra],
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+
+    whole = start(tmp_path / "whole")
+    assert whole.wait(timeout=300) == 0, whole.stdout.read()[-2000:]
+    cut = start(tmp_path / "cut")
+    log = tmp_path / "cut" / "log.jsonl"
+    deadline = time.monotonic() + 240
+    while not (log.exists() and len(log.read_text().splitlines()) >= 5):  # past the state of batch 4
+        assert cut.poll() is None and time.monotonic() < deadline
+        time.sleep(0.01)
+    cut.send_signal(signal.SIGKILL)
+    cut.wait()
+    resumed = start(tmp_path / "cut", "resume=auto")
+    assert resumed.wait(timeout=300) == 0, resumed.stdout.read()[-2000:]
+    a = torch.load(tmp_path / "whole" / "ckpt_000004000.pt", weights_only=True)["actor"]
+    b = torch.load(tmp_path / "cut" / "ckpt_000004000.pt", weights_only=True)["actor"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert _without_times(tmp_path / "cut" / "log.jsonl") == _without_times(tmp_path / "whole" / "log.jsonl")
+    assert json.loads((tmp_path / "cut" / "results.json").read_text())["resumed_at"] == [2000]
+    again = start(tmp_path / "cut", "resume=auto")  # a finished run is not trained again
+    assert again.wait(timeout=120) == 0 and "finished already" in again.stdout.read()
+    again = start(tmp_path / "cut", "resume=true")
+    assert again.wait(timeout=120) != 0 and "has finished" in again.stdout.read()

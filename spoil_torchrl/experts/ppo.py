@@ -7,8 +7,15 @@ multiplier :math:`\\lambda \\ge 0` on the episode-cost limit :math:`d`: the poli
 finished in the batch. The Adam step (OmniSafe's choice) moves :math:`\\lambda` by about ``lagrange_lr`` per
 batch whatever the size of the violation; a plain gradient step with episode costs in the hundreds makes
 :math:`\\lambda` explode (measured: 114 after 14 batches with rate 0.05) and the policy then ignores reward. With
-``lagrangian=False`` it is plain PPO. Checkpoints (actor weights plus the batch's mean episode return and cost)
-are written periodically, so the four policy types of the paper can be picked from them afterwards.
+``lagrangian=False`` it is plain PPO.
+
+Every batch starts from a reset seeded by the run's seed and the batch's index (:func:`batch_seed`), and an
+episode still running when the batch is full is cut there (its last step bootstraps from the critic, like a time
+limit). So a batch depends only on the weights and the random-number state at its start, and a run resumes
+exactly (``resume=True``) from its training state, written atomically every ``checkpoint_every`` batches
+(:data:`~spoil_torchrl.trainers.run_dir.CHECKPOINT_NAME`): a resumed run's policies equal an uninterrupted
+run's. The policy checkpoints ``ckpt_<frames>.pt`` (actor weights plus the batch's mean episode return and cost)
+are written at the same batches, so the four policy types of the paper can be picked from them afterwards.
 """
 
 from __future__ import annotations
@@ -20,23 +27,33 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import SamplerWithoutReplacement
-from torchrl.envs import TransformedEnv
+from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 from tqdm.auto import tqdm
 
+from spoil_torchrl.experts.replay import ReplayRecorder
+from spoil_torchrl.files import write_atomic
 from spoil_torchrl.modules import make_actor, make_value_network
+from spoil_torchrl.stack import current_stack, stack_differences, stack_label
+from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from spoil_torchrl.trainers.run_dir import CHECKPOINT_NAME
+from spoil_torchrl.trainers.run_results import write_json
 
 
 @dataclass
 class PPOConfig:
-    """Hyper-parameters of :func:`train_ppo` (defaults: common PPO settings for Safety-Gymnasium tasks)."""
+    """Hyper-parameters of :func:`train_ppo` (defaults: common PPO settings for Safety-Gymnasium tasks).
+
+    ``record_episodes`` > 0 keeps that many of every batch's finished episodes in a trajectory buffer
+    (``replay/``, :class:`~spoil_torchrl.experts.replay.ReplayRecorder`): the replay datasets of the paper's F.2.
+    """
 
     total_frames: int = 1_000_000
     frames_per_batch: int = 10_000
@@ -55,8 +72,37 @@ class PPOConfig:
     lagrange_lr: float = 0.035
     lagrange_init: float = 0.0
     checkpoint_every: int = 5  # batches
+    record_episodes: int = 0
     seed: int = 0
     extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("total_frames", "frames_per_batch", "epochs", "minibatch_size", "checkpoint_every"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"ppo.{name} = {value!r}: expected an integer >= 1")
+        if self.minibatch_size > self.frames_per_batch:
+            raise ValueError(
+                f"ppo.minibatch_size = {self.minibatch_size} is larger than ppo.frames_per_batch = "
+                f"{self.frames_per_batch}"
+            )
+        if not isinstance(self.record_episodes, int) or self.record_episodes < 0:
+            raise ValueError(f"ppo.record_episodes = {self.record_episodes!r}: expected an integer >= 0")
+        self.hidden_cells = tuple(self.hidden_cells)
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss, a weight or the multiplier became NaN or infinite; the run stops instead of training on."""
+
+
+def batch_seed(seed: int, batch: int) -> int:
+    """The environment seed of batch ``batch`` of a run with seed ``seed`` (distinct for distinct pairs).
+
+    Examples:
+        >>> batch_seed(0, 0) != batch_seed(0, 1) != batch_seed(1, 0)
+        True
+    """
+    return int(np.random.SeedSequence([seed, batch]).generate_state(1)[0])
 
 
 class EpisodeTracker:
@@ -86,6 +132,141 @@ class EpisodeTracker:
         return float(totals[:, 0].mean()), float(totals[:, 1].mean()), len(finished)
 
 
+class _Learner(nn.Module):
+    """The networks, their optimiser and the Lagrange multiplier: the state a batch's update changes."""
+
+    def __init__(self, observation_dim: int, action_dim: int, config: PPOConfig) -> None:
+        super().__init__()
+        cells = config.hidden_cells
+        self.actor = make_actor(
+            observation_dim, action_dim, hidden_cells=cells, distribution="tanh_normal", return_log_prob=True
+        )
+        self.critic = make_value_network(
+            observation_dim, hidden_cells=cells, out_key="state_value", activation_class=nn.Tanh
+        )
+        self.cost_critic = make_value_network(
+            observation_dim, hidden_cells=cells, out_key="cost_value", activation_class=nn.Tanh
+        )
+        self.reward_gae = GAE(
+            gamma=config.gamma, lmbda=config.gae_lambda, value_network=self.critic, average_gae=False
+        )
+        self.cost_gae = GAE(
+            gamma=config.gamma, lmbda=config.gae_lambda, value_network=self.cost_critic, average_gae=False
+        )
+        self.cost_gae.set_keys(
+            reward="cost", value="cost_value", advantage="cost_advantage", value_target="cost_value_target"
+        )
+        self.loss = ClipPPOLoss(
+            self.actor,
+            self.critic,
+            clip_epsilon=config.clip_epsilon,
+            entropy_coeff=config.entropy_coeff,
+            loss_critic_type="l2",
+            normalize_advantage=False,
+        )
+        self.optim = torch.optim.Adam(
+            [
+                {"params": self.loss.actor_network_params.values(True, True), "lr": config.actor_lr},
+                {"params": self.loss.critic_network_params.values(True, True), "lr": config.critic_lr},
+                {"params": self.cost_critic.parameters(), "lr": config.critic_lr},
+            ]
+        )
+        self.lagrange = nn.Parameter(torch.tensor(float(config.lagrange_init)))
+        self.lagrange_optim = torch.optim.Adam([self.lagrange], lr=config.lagrange_lr)
+
+    def training_state(self) -> dict:
+        return {
+            "networks": self.state_dict(),
+            "optim": self.optim.state_dict(),
+            "lagrange_optim": self.lagrange_optim.state_dict(),
+        }
+
+    def load_training_state(self, state: dict) -> None:
+        self.load_state_dict(state["networks"])
+        self.optim.load_state_dict(state["optim"])
+        self.lagrange_optim.load_state_dict(state["lagrange_optim"])
+
+
+def _check_finite(what: str, value: torch.Tensor, batch: int) -> None:
+    if not bool(torch.isfinite(value).all()):
+        raise TrainingDiverged(
+            f"batch {batch}: {what} is not finite ({value.detach().reshape(-1)[:3].tolist()}); lower the "
+            "learning rates (ppo.actor_lr, ppo.critic_lr, ppo.lagrange_lr) or ppo.max_grad_norm"
+        )
+
+
+def ppo_update(learner: _Learner, batch: TensorDict, config: PPOConfig, index: int, cost: float) -> None:
+    """One batch's update: the multiplier's Adam step on the batch's mean episode cost ``cost`` (skipped
+    without a finished episode), the advantages of the penalised objective, then ``epochs`` passes of clipped
+    PPO over minibatches (actor, critic and cost critic each clipped to ``max_grad_norm``)."""
+    with torch.no_grad():
+        learner.reward_gae(batch)
+        learner.cost_gae(batch)
+    if config.lagrangian and not math.isnan(cost):  # no finished episode: no new cost estimate, no step
+        learner.lagrange_optim.zero_grad()
+        (-learner.lagrange * (cost - config.cost_limit)).backward()
+        learner.lagrange_optim.step()
+        with torch.no_grad():
+            learner.lagrange.clamp_(min=0.0)
+    lagrange = float(learner.lagrange.detach())
+    advantage = batch["advantage"]
+    if config.lagrangian:
+        advantage = (advantage - lagrange * batch["cost_advantage"]) / (1.0 + lagrange)
+    batch["advantage"] = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+    buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(batch.numel()),
+        sampler=SamplerWithoutReplacement(),
+        batch_size=config.minibatch_size,
+    )
+    buffer.extend(batch.reshape(-1))
+    for _ in range(config.epochs):
+        for _ in range(batch.numel() // config.minibatch_size):
+            mb = buffer.sample()
+            terms = learner.loss(mb)
+            cost_pred = learner.cost_critic(mb.select("observation").clone())["cost_value"]
+            cost_loss = (cost_pred - mb["cost_value_target"]).pow(2).mean()
+            total = (
+                terms["loss_objective"] + terms["loss_critic"] + terms.get("loss_entropy", 0.0) + cost_loss
+            )
+            _check_finite("the PPO loss", total, index)
+            learner.optim.zero_grad()
+            total.backward()
+            for group in learner.optim.param_groups:  # actor, critic and cost critic clipped separately
+                nn.utils.clip_grad_norm_(group["params"], config.max_grad_norm)
+            learner.optim.step()
+    for name, param in learner.named_parameters():
+        _check_finite(f"parameter {name}", param, index)
+
+
+def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, index: int) -> TensorDict:
+    """Batch ``index``: ``frames_per_batch`` steps of ``actor``'s sampled actions from a reset seeded with
+    :func:`batch_seed` (episodes end and reset inside; one still running at the end is cut there)."""
+    env.set_seed(batch_seed(config.seed, index))
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        return env.rollout(config.frames_per_batch, actor, break_when_any_done=False, tensordict=env.reset())
+
+
+def _resume_state(run_dir: Path, config: PPOConfig, learner: _Learner) -> dict:
+    """The training state of ``run_dir``, checked against ``config`` and this stack, loaded into ``learner``."""
+    state = load_checkpoint(run_dir / CHECKPOINT_NAME)
+    old, new = state["config"], json.loads(json.dumps(asdict(config)))
+    differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    if differ:
+        raise CheckpointError(
+            f"{run_dir}: resume=true with other settings than the run's ({', '.join('ppo.' + k for k in differ)});"
+            " resume with the run's own settings (its config.json) or start a new run"
+        )
+    differences = stack_differences(state["stack"])
+    if differences:
+        raise CheckpointError(
+            f"{run_dir}: trained on another software stack ({stack_label(state['stack'])}: "
+            f"{', '.join(differences)}); resume it on its own stack or start a new run"
+        )
+    learner.load_training_state(state["learner"])
+    torch.set_rng_state(state["rng"])
+    return state
+
+
 def train_ppo(
     make_env: Callable[[], TransformedEnv],
     observation_dim: int,
@@ -94,133 +275,118 @@ def train_ppo(
     out_dir: str | Path,
     *,
     progress: bool = True,
+    resume: bool = False,
 ) -> list[dict]:
     """Train a PPO (or PPO-Lagrangian, ``config.lagrangian``) policy and checkpoint it under ``out_dir``.
 
     Args:
         make_env: builds the TorchRL environment (with ``("next", "cost")``), e.g.
-            ``functools.partial(spoil_torchrl.envs.make_env, "SafetyPointCircle1-v0", seed=0)``.
+            ``functools.partial(spoil_torchrl.envs.make_env, "SafetyPointCircle1-v0")``.
         observation_dim, action_dim: sizes of the task.
         config: :class:`PPOConfig`.
-        out_dir: checkpoints ``ckpt_<frames>.pt`` (the actor ``state_dict`` that collected that batch, with the
-            batch's episode statistics; loadable with ``weights_only=True``)
-            and ``log.jsonl`` (one line per batch: frames, mean episode return and cost, lambda, seconds).
+        out_dir: the run directory: ``ckpt_<frames>.pt`` (the actor ``state_dict`` that collected that batch,
+            with the batch's episode statistics; loadable with ``weights_only=True``), ``log.jsonl`` (one line
+            per batch: frames, mean episode return and cost, lambda, seconds), ``config.json``,
+            ``results.json`` (``status``: training, finished, interrupted or failed), the training state
+            (:data:`~spoil_torchrl.trainers.run_dir.CHECKPOINT_NAME`) and, with ``record_episodes``, ``replay/``.
+        progress: a progress bar over all frames of the run (a resumed run starts it where it stopped), with
+            its ETA.
+        resume: continue from the training state in ``out_dir`` (same ``config``, same software stack).
 
     Returns:
-        the log lines.
+        the log lines of the whole run.
+
+    Examples:
+        >>> import functools, tempfile
+        >>> from spoil_torchrl.envs import make_env
+        >>> config = PPOConfig(total_frames=200, frames_per_batch=100, epochs=1, minibatch_size=50,
+        ...                    hidden_cells=(8,), checkpoint_every=1)
+        >>> log = train_ppo(functools.partial(make_env, "SafetyPointCircle1-v0"), 28, 2, config,
+        ...                 tempfile.mkdtemp(), progress=False)
+        >>> [line["frames"] for line in log]
+        [100, 200]
     """
     torch.manual_seed(config.seed)
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps(asdict(config), indent=2))
-
-    actor = make_actor(
-        observation_dim,
-        action_dim,
-        hidden_cells=config.hidden_cells,
-        distribution="tanh_normal",
-        return_log_prob=True,
-    )
-    critic = make_value_network(
-        observation_dim, hidden_cells=config.hidden_cells, out_key="state_value", activation_class=nn.Tanh
-    )
-    cost_critic = make_value_network(
-        observation_dim, hidden_cells=config.hidden_cells, out_key="cost_value", activation_class=nn.Tanh
-    )
-    collector = Collector(
-        make_env,
-        actor,
-        frames_per_batch=config.frames_per_batch,
-        total_frames=config.total_frames,
-        auto_register_policy_transforms=False,
-    )
-    collector.set_seed(config.seed)
-    reward_gae = GAE(gamma=config.gamma, lmbda=config.gae_lambda, value_network=critic, average_gae=False)
-    cost_gae = GAE(gamma=config.gamma, lmbda=config.gae_lambda, value_network=cost_critic, average_gae=False)
-    cost_gae.set_keys(
-        reward="cost", value="cost_value", advantage="cost_advantage", value_target="cost_value_target"
-    )
-    loss = ClipPPOLoss(
-        actor,
-        critic,
-        clip_epsilon=config.clip_epsilon,
-        entropy_coeff=config.entropy_coeff,
-        loss_critic_type="l2",
-        normalize_advantage=False,
-    )
-    optim = torch.optim.Adam(
-        [
-            {"params": loss.actor_network_params.values(True, True), "lr": config.actor_lr},
-            {"params": loss.critic_network_params.values(True, True), "lr": config.critic_lr},
-            {"params": cost_critic.parameters(), "lr": config.critic_lr},
-        ]
-    )
-    buffer = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(config.frames_per_batch),
-        sampler=SamplerWithoutReplacement(),
-        batch_size=config.minibatch_size,
-    )
-    lagrange_param = nn.Parameter(torch.tensor(float(config.lagrange_init)))
-    lagrange_optim = torch.optim.Adam([lagrange_param], lr=config.lagrange_lr)
-    lagrange = config.lagrange_init
-    log: list[dict] = []
-    frames, start = 0, time.perf_counter()
+    learner = _Learner(observation_dim, action_dim, config)
+    state = _resume_state(run_dir, config, learner) if resume else None
+    log: list[dict] = [] if state is None else list(state["log"])
+    first = 0 if state is None else int(state["batches"])
+    results = {"status": "training", "config": asdict(config), "stack": current_stack(), "frames": 0}
+    if state is None:
+        write_atomic(run_dir / "config.json", json.dumps(asdict(config), indent=2))
+    else:
+        results.update(state["results"], status="training")
+        results.setdefault("resumed_at", []).append(int(state["frames"]))
+    # the log holds every batch once: what a killed run logged after its training state is dropped
+    write_atomic(run_dir / "log.jsonl", "".join(json.dumps(line) + "\n" for line in log))
+    write_json(run_dir / "results.json", results)
+    recorder = ReplayRecorder(run_dir / "replay", config.record_episodes) if config.record_episodes else None
+    batches = math.ceil(config.total_frames / config.frames_per_batch)
+    frames = first * config.frames_per_batch
+    elapsed = log[-1]["seconds"] if log else 0.0
     bar = tqdm(
-        total=config.total_frames, desc="ppo-lag" if config.lagrangian else "ppo", disable=not progress
+        total=batches * config.frames_per_batch,
+        initial=frames,
+        desc="ppo-lag" if config.lagrangian else "ppo",
+        unit="frame",
+        disable=not progress,
     )
-    tracker = EpisodeTracker()
-    for i, batch in enumerate(collector):
-        frames += batch.numel()
-        ep_return, ep_cost, n_episodes = tracker.update(batch)
-        line = {
-            "frames": frames,
-            "episode_return": ep_return,
-            "episode_cost": ep_cost,
-            "episodes": n_episodes,
-        }
-        if (i + 1) % config.checkpoint_every == 0 or frames >= config.total_frames:
-            # the weights that collected this batch, with that batch's episode statistics
-            torch.save({"actor": actor.state_dict(), **line}, run_dir / f"ckpt_{frames:09d}.pt")
-        with torch.no_grad():
-            reward_gae(batch)
-            cost_gae(batch)
-        if config.lagrangian and n_episodes:  # no finished episode: no new cost estimate, no step
-            lagrange_optim.zero_grad()
-            (-lagrange_param * (ep_cost - config.cost_limit)).backward()
-            lagrange_optim.step()
-            with torch.no_grad():
-                lagrange_param.clamp_(min=0.0)
-            lagrange = float(lagrange_param.detach())
-        advantage = batch["advantage"]
-        if config.lagrangian:
-            advantage = (advantage - lagrange * batch["cost_advantage"]) / (1.0 + lagrange)
-        batch["advantage"] = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
-        buffer.empty()
-        buffer.extend(batch.reshape(-1))
-        for _ in range(config.epochs):
-            for _ in range(config.frames_per_batch // config.minibatch_size):
-                mb = buffer.sample()
-                terms = loss(mb)
-                cost_pred = cost_critic(mb.select("observation").clone())["cost_value"]
-                cost_loss = (cost_pred - mb["cost_value_target"]).pow(2).mean()
-                total = (
-                    terms["loss_objective"]
-                    + terms["loss_critic"]
-                    + terms.get("loss_entropy", 0.0)
-                    + cost_loss
+    env = make_env()
+    start = time.perf_counter()
+    try:
+        for index in range(first, batches):
+            batch = collect_batch(env, learner.actor, config, index)
+            frames += batch.numel()
+            ep_return, ep_cost, n_episodes = EpisodeTracker().update(batch)
+            line = {
+                "frames": frames,
+                "episode_return": ep_return,
+                "episode_cost": ep_cost,
+                "episodes": n_episodes,
+            }
+            last = index + 1 == batches
+            if (index + 1) % config.checkpoint_every == 0 or last:
+                # the weights that collected this batch, with that batch's episode statistics
+                torch.save({"actor": learner.actor.state_dict(), **line}, run_dir / f"ckpt_{frames:09d}.pt")
+            if recorder is not None:
+                recorder.record(batch, index)
+            ppo_update(learner, batch, config, index, ep_cost)
+            line.update(
+                lagrange=float(learner.lagrange.detach()), seconds=elapsed + time.perf_counter() - start
+            )
+            log.append(line)
+            with open(run_dir / "log.jsonl", "a") as f:
+                f.write(json.dumps(line) + "\n")
+            results.update(frames=frames, last=line)
+            if (index + 1) % config.checkpoint_every == 0 or last:
+                save_checkpoint(
+                    run_dir / CHECKPOINT_NAME,
+                    {
+                        "config": json.loads(json.dumps(asdict(config))),
+                        "stack": current_stack(),
+                        "batches": index + 1,
+                        "frames": frames,
+                        "learner": learner.training_state(),
+                        "rng": torch.get_rng_state(),
+                        "log": log,
+                        "results": results,
+                    },
                 )
-                optim.zero_grad()
-                total.backward()
-                for group in optim.param_groups:  # actor, critic and cost critic clipped separately
-                    nn.utils.clip_grad_norm_(group["params"], config.max_grad_norm)
-                optim.step()
-        collector.update_policy_weights_()
-        line.update(lagrange=lagrange, seconds=time.perf_counter() - start)
-        log.append(line)
-        with open(run_dir / "log.jsonl", "a") as f:
-            f.write(json.dumps(line) + "\n")
-        bar.update(batch.numel())
-        bar.set_postfix(ret=f"{ep_return:.1f}", cost=f"{ep_cost:.1f}", lam=f"{lagrange:.2f}")
-    bar.close()
-    collector.shutdown()
+                write_json(run_dir / "results.json", results)
+            bar.update(batch.numel())
+            bar.set_postfix(ret=f"{ep_return:.1f}", cost=f"{ep_cost:.1f}", lam=f"{line['lagrange']:.2f}")
+    except KeyboardInterrupt:
+        write_json(run_dir / "results.json", dict(results, status="interrupted"))
+        raise
+    except BaseException as err:
+        write_json(
+            run_dir / "results.json", dict(results, status="failed", error=f"{type(err).__name__}: {err}")
+        )
+        raise
+    finally:
+        bar.close()
+        env.close()
+    write_json(run_dir / "results.json", dict(results, status="finished"))
     return log

@@ -1,0 +1,92 @@
+"""The trajectory buffer an expert's training leaves behind: the raw material of the replay datasets (paper F.2).
+
+The paper's replay datasets come from PPO-Lagrangian training: "at every epoch we rolled out trajectories using
+the current policy and stored a fixed amount of trajectories into a replay buffer". :class:`ReplayRecorder`
+does that inside :func:`~spoil_torchrl.experts.train_ppo` (``PPOConfig.record_episodes``): from every batch the
+first ``episodes`` episodes that finished in it (complete trajectories only: one cut by the batch's end is not
+kept) go into ``replay/batch_<index>.pt``, written atomically, in the DSRL field layout. A resumed training
+rewrites the files of the batches it repeats with the same content. :func:`read_replay` joins them, in training
+order, into one set of arrays with each transition's batch index.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from spoil_torchrl.files import save_atomic
+
+#: The DSRL fields a replay file holds, and the batch key each comes from.
+REPLAY_FIELDS = {
+    "observations": "observation",
+    "actions": "action",
+    "next_observations": ("next", "observation"),
+    "rewards": ("next", "reward"),
+    "costs": ("next", "cost"),
+    "terminals": ("next", "terminated"),
+    "timeouts": ("next", "truncated"),
+}
+
+
+class ReplayRecorder:
+    """Keeps the first ``episodes`` finished episodes of every training batch under ``directory``.
+
+    Examples:
+        >>> import tempfile
+        >>> done = torch.tensor([False, True, False, True, False]).unsqueeze(-1)
+        >>> batch = TensorDict({"observation": torch.arange(5.).unsqueeze(-1), "action": torch.zeros(5, 1),
+        ...     "next": {"observation": torch.arange(1., 6.).unsqueeze(-1), "reward": torch.ones(5, 1),
+        ...              "cost": torch.zeros(5, 1), "terminated": torch.zeros_like(done), "truncated": done,
+        ...              "done": done}}, [5])
+        >>> directory = Path(tempfile.mkdtemp())
+        >>> ReplayRecorder(directory, episodes=1).record(batch, 0)  # the first of its two finished episodes
+        1
+        >>> read_replay(directory)["observations"].ravel().tolist()
+        [0.0, 1.0]
+    """
+
+    def __init__(self, directory: str | os.PathLike, episodes: int) -> None:
+        if episodes < 1:
+            raise ValueError(f"episodes = {episodes}: expected an integer >= 1")
+        self.directory = Path(directory)
+        self.episodes = episodes
+
+    def record(self, batch: TensorDict, index: int) -> int:
+        """Store up to ``episodes`` of ``batch``'s finished episodes as ``batch_<index>.pt``; returns how many."""
+        ends = (batch["next", "done"].reshape(-1).nonzero().squeeze(-1) + 1).tolist()[: self.episodes]
+        stop = ends[-1] if ends else 0
+        arrays = {
+            name: batch.get(key)[:stop].reshape(stop, -1).squeeze(-1) if stop else batch.get(key)[:0]
+            for name, key in REPLAY_FIELDS.items()
+        }
+        if stop and not bool((arrays["terminals"] | arrays["timeouts"])[stop - 1]):
+            raise RuntimeError(
+                f"batch {index}: an episode ends with done but neither terminated nor truncated"
+            )
+        save_atomic(
+            {**{k: v.clone() for k, v in arrays.items()}, "batch": index},
+            self.directory / f"batch_{index:06d}.pt",
+        )
+        return len(ends)
+
+
+def read_replay(directory: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every recorded batch of ``directory`` joined in training order (the DSRL fields plus ``batch``: each
+    transition's training-batch index). A folder with no recorded batch is an error, not an empty buffer."""
+    directory = Path(directory)
+    files = sorted(directory.glob("batch_*.pt"))
+    if not files:
+        raise FileNotFoundError(
+            f"{directory}: no recorded batch (batch_<index>.pt); train with ppo.record_episodes > 0"
+        )
+    parts: dict[str, list[np.ndarray]] = {name: [] for name in [*REPLAY_FIELDS, "batch"]}
+    for path in files:
+        stored = torch.load(path, weights_only=True)
+        for name in REPLAY_FIELDS:
+            parts[name].append(stored[name].numpy())
+        parts["batch"].append(np.full(len(stored["rewards"]), int(stored["batch"]), dtype=np.int64))
+    return {name: np.concatenate(values) for name, values in parts.items()}
