@@ -71,10 +71,12 @@ def load_runs(
                 continue
             status = run_status(path.parent, results)
             if status != "finished":
-                skipped.append((path, status))
+                error = results.get("error")  # a diverged or crashed run says why it failed
+                skipped.append((path, status if error is None else f"{status} ({error})"))
                 continue
             key = (results["dataset"], results["algo"], results["seed"])
             found[key].append((path.stat().st_mtime, path, results))
+    _refuse_mixed_data(found)
     budgets: dict[str, dict[str | None, Path]] = defaultdict(dict)
     for key, copies in sorted(found.items(), key=lambda item: str(item[0])):
         copies.sort(key=lambda c: c[0])
@@ -97,6 +99,24 @@ def load_runs(
     for group in runs.values():
         group.sort(key=lambda r: r["seed"])
     return dict(runs)
+
+
+def _refuse_mixed_data(found: dict) -> None:
+    """Runs filed under one dataset name must have been trained on the same data (``results.json``'s
+    ``data.fingerprint``; runs made before it was recorded are not checked)."""
+    seen: dict[str, tuple[str, Path]] = {}
+    for (dataset, _, _), copies in sorted(found.items(), key=lambda item: str(item[0])):
+        for _, path, results in copies:
+            fingerprint = (results.get("data") or {}).get("fingerprint")
+            if fingerprint is None:
+                continue
+            first = seen.setdefault(dataset, (fingerprint, path))
+            if first[0] != fingerprint:
+                raise ValueError(
+                    f"runs filed as dataset {dataset} were trained on different data: {first[1].parent} "
+                    f"(data {first[0]}) and {path.parent} (data {fingerprint}); give each its own "
+                    "dataset.name, or report them separately"
+                )
 
 
 def run_stack(results: dict) -> str:
@@ -228,6 +248,12 @@ def main() -> None:
         "--latest", action="store_true", help="a seed run more than once counts with its newest run"
     )
     args = parser.parse_args()
+    for flag, path in (("--out", args.out), ("--plot", args.plot), ("--curves", args.curves)):
+        if path is not None and path.is_dir():
+            parser.error(f"{flag} {path} is a directory; give the file to write")
+        if flag != "--out" and path is not None and path.suffix.lower() not in (".png", ".pdf", ".svg"):
+            # matplotlib would add an extension and write a file that was not named
+            parser.error(f"{flag} {path}: give a file name ending in .png, .pdf or .svg")
     skipped: list[tuple[Path, str]] = []
     try:
         runs = load_runs(args.folders, latest=args.latest, skipped=skipped)
@@ -242,14 +268,17 @@ def main() -> None:
     summary = summarize(runs)
     text = markdown(summary)
     print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
-    if args.plot:
-        plot_tradeoff(summary, args.plot)
-    if args.curves:
-        seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
-        plot_learning_curves(learning_curves(runs), args.curves, seeds=seeds)
+    try:
+        if args.out:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(text + "\n")
+        if args.plot:
+            plot_tradeoff(summary, args.plot)
+        if args.curves:
+            seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
+            plot_learning_curves(learning_curves(runs), args.curves, seeds=seeds)
+    except OSError as err:  # an unwritable place: one line
+        raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
 
 
 if __name__ == "__main__":

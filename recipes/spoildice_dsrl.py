@@ -55,6 +55,8 @@ from spoil_torchrl.data import (
 from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.data.prepare import prepare_dataset
+from spoil_torchrl.divergence import TrainingDiverged
+from spoil_torchrl.envs import log_mujoco_warnings
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.eval.evaluator import METRICS
@@ -75,6 +77,8 @@ from spoil_torchrl.trainers.run_dir import (
     RunDirError,
     claim_run_dir,
     release_run_dir,
+    resume_command,
+    write_hydra_record,
 )
 from spoil_torchrl.trainers.run_results import settings_yaml, summary_table, write_json
 from spoil_torchrl.trainers.seed_run import (
@@ -92,7 +96,7 @@ from spoil_torchrl.trainers.seed_run import (
     rollout_writer,
     save_state,
 )
-from spoil_torchrl.trainers.settings import SettingsError, check_settings
+from spoil_torchrl.trainers.settings import SettingsError, check_settings, name_dataset_by_source
 from spoil_torchrl.trainers.tracking import check_logger_available, make_logger
 from spoil_torchrl.trainers.vectorized import VectorizedStepper
 
@@ -109,8 +113,15 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
         raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     seeds = cfg.get("seeds")
     resume = cfg.get("resume", False)
+
     # never starts over a run (a seeds=[...] run keeps its runs in seed<k>/, each claimed on its own)
-    resuming = claim_run_dir(run_dir, resume="auto" if seeds and resume else resume)
+    def same_settings(resuming: bool) -> None:  # a refused resume writes nothing into the run directory
+        if resuming and not seeds:
+            check_resumable(load_checkpoint(run_dir / CHECKPOINT_NAME), settings_yaml(cfg), run_dir)
+
+    resuming = claim_run_dir(run_dir, resume="auto" if seeds and resume else resume, check=same_settings)
+    if not resuming:
+        write_hydra_record(run_dir, cfg)
     try:
         if seeds:
             return run_seeds(cfg, run_dir, [int(s) for s in seeds], start)
@@ -155,12 +166,6 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
         progress=cfg.progress,
         extra_roles=tuple(cfg.algo.get("extra_roles", ())),
     )
-    obs_dim, act_dim = data.episodes["observation"].shape[-1], data.episodes["action"].shape[-1]
-    if (obs_dim, act_dim) != (task.observation_dim, task.action_dim):
-        raise ValueError(
-            f"{cfg.dataset.source}: observation/action sizes {obs_dim}/{act_dim}, but {task.env_id} has "
-            f"{task.observation_dim}/{task.action_dim}"
-        )
     # States standardised once with D_U's statistics: every network reads them, the saved policy carries them.
     norm = (
         fit_observation_normalizer(data.episodes, data.roles["unlabeled"])
@@ -428,7 +433,10 @@ USER_ERRORS = (SettingsError, RunDirError, CheckpointError, DatasetError, Unknow
 @hydra.main(config_path="../configs", config_name="spoildice_dsrl", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     stop_on_signals()  # SIGTERM ends the run like Ctrl-C: marked "interrupted", its checkpoint intact
+    logging.captureWarnings(True)  # warnings about the data or settings also go into the run's log
+    log_mujoco_warnings()  # into the run's log, not MUJOCO_LOG.TXT in the working directory
     run_dir = Path(HydraConfig.get().runtime.output_dir)
+    name_dataset_by_source(cfg, HydraConfig.get().overrides.task)  # runs of another file get its name
     try:
         results = run(cfg, run_dir)
     except USER_ERRORS as err:
@@ -436,6 +444,19 @@ def main(cfg: DictConfig) -> None:
             raise
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
+    except TrainingDiverged as err:  # marked "failed" in results.json; the report leaves it out
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(f"failed: {err}", file=sys.stderr)
+        sys.exit(1)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: marked "interrupted", its last checkpoint intact
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        print(
+            f"interrupted; continue with: {resume_command('recipes/spoildice_dsrl.py', run_dir)}",
+            file=sys.stderr,
+        )
+        sys.exit(130)
     for one in results if isinstance(results, list) else [results]:
         log.info(summary_table(one))
         if "dice_report" in one:

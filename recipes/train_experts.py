@@ -23,13 +23,20 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from spoil_torchrl.envs import make_env
+from spoil_torchrl.divergence import TrainingDiverged
+from spoil_torchrl.envs import log_mujoco_warnings, make_env
 from spoil_torchrl.experts import PPOConfig, train_ppo
-from spoil_torchrl.experts.ppo import TrainingDiverged
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import stop_on_signals
 from spoil_torchrl.trainers.checkpoint import CheckpointError
-from spoil_torchrl.trainers.run_dir import RunDirError, claim_run_dir, release_run_dir, run_status
+from spoil_torchrl.trainers.run_dir import (
+    RunDirError,
+    claim_run_dir,
+    release_run_dir,
+    resume_command,
+    run_status,
+    write_hydra_record,
+)
 from spoil_torchrl.trainers.settings import SettingsError, check_settings
 
 log = logging.getLogger(__name__)
@@ -38,6 +45,7 @@ log = logging.getLogger(__name__)
 @hydra.main(config_path="../configs", config_name="train_experts", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     stop_on_signals()  # SIGTERM ends training like Ctrl-C, the last training state intact
+    log_mujoco_warnings()  # into the run's log, not MUJOCO_LOG.TXT in the working directory
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         check_settings({"threads": cfg.threads})
@@ -47,6 +55,8 @@ def main(cfg: DictConfig) -> None:
             log.info(f"{run_dir}: finished already; nothing to do")
             return
         resuming = claim_run_dir(run_dir, resume=cfg.resume)
+        if not resuming:
+            write_hydra_record(run_dir, cfg)
     except (SettingsError, RunDirError, UnknownDatasetError, ValueError) as err:
         sys.exit(f"error: {err}")
     torch.set_num_threads(cfg.threads)
@@ -65,13 +75,7 @@ def main(cfg: DictConfig) -> None:
             raise
         sys.exit(f"error: {err}")
     except KeyboardInterrupt:
-        kept = [
-            o for o in HydraConfig.get().overrides.task if not o.startswith(("hydra.run.dir=", "resume="))
-        ]
-        sys.exit(
-            f"interrupted; continue with: python recipes/train_experts.py {' '.join(kept)} "
-            f"hydra.run.dir={run_dir} resume=true"
-        )
+        sys.exit(f"interrupted; continue with: {resume_command('recipes/train_experts.py', run_dir)}")
     finally:
         release_run_dir(run_dir)
     last = history[-1]

@@ -29,8 +29,12 @@ def write_atomic(path: str | os.PathLike, data: bytes | str) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
-    os.replace(tmp, path)
+    try:
+        tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+        os.replace(tmp, path)
+    except BaseException:  # a full disk or an interrupt: no half-written temporary file stays behind
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def save_atomic(obj: Any, path: str | os.PathLike) -> None:

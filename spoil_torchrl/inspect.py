@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from spoil_torchrl.eval.mcap_reader import Rollouts, read_rollouts
-from spoil_torchrl.eval.mcap_schemas import MCAP_MAGIC, RolloutFileError
+from spoil_torchrl.eval.mcap_schemas import EPISODE_TOPIC, MCAP_MAGIC, STEP_TOPIC, RolloutFileError
 
 COLUMNS = (
     ("eval step", "evaluation_step"),
@@ -125,6 +125,16 @@ def _ends_like_a_finished_file(path: Path) -> bool:
         return f.read() == MCAP_MAGIC
 
 
+def _has_rollout_channels(path: Path) -> bool:
+    """Whether the (finished) MCAP file declares a channel on one of the rollout topics."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    channels = [] if summary is None else summary.channels.values()
+    return any(channel.topic in (STEP_TOPIC, EPISODE_TOPIC) for channel in channels)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m spoil_torchrl.inspect",
@@ -137,6 +147,13 @@ def main(argv: list[str] | None = None) -> int:
         rollouts = read_rollouts(args.file)
     except (FileNotFoundError, RolloutFileError) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 1
+    if rollouts.finished and not _has_rollout_channels(args.file):
+        print(
+            f"error: {args.file}: an MCAP file without rollout topics ({STEP_TOPIC}, {EPISODE_TOPIC}): not "
+            "written by the evaluator (recipes/spoildice_dsrl.py writes rollouts.mcap in its run directory)",
+            file=sys.stderr,
+        )
         return 1
     if not rollouts.finished and _ends_like_a_finished_file(args.file):
         print(

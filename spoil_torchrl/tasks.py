@@ -483,6 +483,8 @@ class EnvTask:
         cost_rule: the task's cost in words (checked by the tests).
         velocity_threshold: speed above which a velocity task costs 1 (``None`` for navigation tasks).
         dsrl_id: the matching DSRL dataset, for its normalisation constants.
+        action_bound: every action coordinate lies in ``[-action_bound, action_bound]`` (the simulator's box,
+            which the tanh-squashed policies span).
     """
 
     env_id: str
@@ -493,6 +495,7 @@ class EnvTask:
     cost_rule: str
     velocity_threshold: float | None = None
     dsrl_id: str | None = None
+    action_bound: float = 1.0
 
 
 # Sizes and cost rules: measured with safety-gymnasium 1.0.0; cost limit: Table G.

@@ -27,6 +27,15 @@ from tests.data.helpers import make_arrays
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _task_metadata() -> dict:
+    return {
+        "env_id": "SafetyPointCircle1-v0",
+        "cost_threshold": 25.0,
+        "random_return": 0.0,
+        "safe_high_return": 40.0,
+    }
+
+
 def _good(path: Path, **kwargs) -> Path:
     return write_dsrl_file(path, make_arrays(lengths=(30, 20, 40), **kwargs), metadata={"note": "ok"})
 
@@ -101,6 +110,17 @@ DATA_CASES = {
     "negative costs": (_arrays_file(costs=lambda a: a - 1.0), "costs are negative"),
     "2-D rewards": (_arrays_file(rewards=lambda a: np.stack([a, a], 1)), "'rewards' must be 1-D"),
     "non-0/1 flags": (_arrays_file(terminals=lambda a: a + 2.0), "terminals"),
+    "text flags": (_arrays_file(terminals=lambda a: a.astype("S1")), "'terminals' must hold 0/1 flags"),
+    "beyond float32": (
+        _arrays_file(observations=lambda a: np.where(a == 2, 1e39, a.astype(np.float64))),
+        "holds 1e\\+39 at row 2, beyond the float32 range",
+    ),
+    "a directory": (lambda path: (path.mkdir(), path)[1], "a directory, not an HDF5 file"),
+    "symlink loop": (lambda path: (path.symlink_to(path), path)[1], "a symlink loop"),
+    "broken symlink": (
+        lambda path: (path.symlink_to(path.with_name("gone.hdf5")), path)[1],
+        "broken symlink",
+    ),
 }
 
 
@@ -113,6 +133,27 @@ def test_a_broken_data_file_is_one_clear_error(tmp_path, case):
         load_episodes(f"file:{path}")
     assert str(path) in str(err.value)
     assert {p: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+
+
+def test_a_file_another_process_writes_is_not_called_corrupt(tmp_path):
+    path = _good(tmp_path / "data.hdf5")
+    writer = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"import h5py, time; f = h5py.File({str(path)!r}, 'a'); print(1, flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        writer.stdout.readline()
+        with pytest.raises(DatasetError, match="another process has this file open.*keep it") as err:
+            load_episodes(f"file:{path}")
+        assert "delete" not in str(err.value)
+    finally:
+        writer.kill()
+        writer.wait()
 
 
 def test_malformed_metadata_names_the_file(tmp_path):
@@ -217,6 +258,41 @@ def test_inspect_fails_on_a_damaged_finished_rollout_file(tmp_path):
     assert proc.returncode == 1 and "finished by its writer but is damaged" in proc.stderr
 
 
+def test_inspect_refuses_an_mcap_file_without_rollouts(tmp_path):
+    from mcap.writer import Writer
+
+    path = tmp_path / "camera.mcap"
+    with open(path, "wb") as f:  # a valid MCAP file of something else
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema("image", "jsonschema", b"{}")
+        channel = writer.register_channel("/camera", "json", schema)
+        writer.add_message(channel, log_time=0, data=b"{}", publish_time=0)
+        writer.finish()
+    proc = subprocess.run(
+        [sys.executable, "-m", "spoil_torchrl.inspect", str(path)], capture_output=True, text=True, cwd=ROOT
+    )
+    assert proc.returncode == 1 and "without rollout topics" in proc.stderr and "0 episode" not in proc.stdout
+
+
+def test_a_failed_atomic_write_leaves_no_temporary_file(tmp_path):
+    from spoil_torchrl.files import write_atomic
+
+    (tmp_path / "results.json").mkdir()  # os.replace onto a directory fails, like a full disk would
+    with pytest.raises(OSError):
+        write_atomic(tmp_path / "results.json", "{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]
+
+
+def test_observation_columns_a_few_extremes_would_erase_are_named():
+    from spoil_torchrl.data.episodes import warn_erased_features
+
+    x = torch.randn(500, 3)
+    x[7, 2] = 1e38
+    with pytest.warns(UserWarning, match="observation column 2: .* 1e\\+38 at row 7"):
+        assert warn_erased_features(x) == [2]
+
+
 # -- settings -------------------------------------------------------------------------------------------------
 
 SETTING_CASES = [
@@ -246,6 +322,18 @@ SETTING_CASES = [
     ({"dataset": {"cost_threshold": -1.0}}, "dataset.cost_threshold = -1.0"),
     ({"dataset": {"scheme": "replay"}}, "dataset.scheme = 'replay'"),
     ({"seed": -1}, "seed = -1"),
+    ({"normalize_observations": "no"}, "normalize_observations = 'no': expected true or false"),
+    ({"progress": 0}, "progress = 0: expected true or false"),
+    ({"eval": {"frames": "off"}}, "eval.frames = 'off'"),
+    ({"train": {"checkpoint": "no"}}, "train.checkpoint = 'no'"),
+    ({"train": {"compile": 1}}, "train.compile = 1"),
+    ({"dataset": {"generate": "yes"}}, "dataset.generate = 'yes'"),
+    ({"threads": 999}, "threads = 999: expected an integer from 1 to"),
+    ({"task": {"eval_num_envs": 0}}, "task.eval_num_envs = 0"),
+    ({"dataset": {"return_range": [0, 40, -7]}}, "dataset.return_range = [0, 40, -7]"),
+    ({"dataset": {"return_range": "abc"}}, "dataset.return_range = 'abc'"),
+    ({"dataset": {"return_range": [40, 0]}}, "dataset.return_range = [40, 0]"),
+    ({"dataset": {"return_range": [0, float("inf")]}}, "dataset.return_range = [0, inf]"),
 ]
 
 
@@ -277,6 +365,27 @@ def _snapshot(folder: Path) -> dict[str, str]:
         (["DATA=truncated"], "truncated or corrupt|corrupt"),
         (["RUN=existing"], "already holds a run"),
         (["RUN=blocked-checkpoints"], "cannot write checkpoints"),
+        (["normalize_observations=no"], "normalize_observations = 'no'"),
+        (["threads=999"], "threads = 999"),
+        (["dataset.return_range=[0,40,-7]"], "dataset.return_range"),
+        (["task.eval_num_envs=0"], "task.eval_num_envs = 0"),
+        (["dataset.source=generated:no-such-data"], "unknown generated dataset 'no-such-data'"),
+        (
+            ["DATA=task", "dataset.n_safe=1", "dataset.n_performant=1", "dataset.n_unlabeled=1000"],
+            "fewer than n_unlabeled=1000",
+        ),
+        (["DATA=no-safe"], "no episode has cost <= 25"),
+        (
+            ["DATA=wrong-size", "dataset.cost_threshold=25", "dataset.return_range=[0,1]"],
+            "observation/action sizes 4/2",
+        ),
+        (["DATA=big-actions"], "action values lie outside SafetyPointCircle1-v0's bounds"),
+        (["RUN=a-file"], "is a file, not a run directory"),
+        (["RUN=uncreatable"], "cannot be created"),
+        (
+            ["DATA=task", "dataset.n_safe=1", "dataset.n_performant=1", "logger=wandb"],
+            "logger=wandb cannot start|needs the wandb package",
+        ),
     ],
 )
 def test_the_recipe_reports_user_errors_in_one_line(tmp_path, overrides, match):
@@ -289,8 +398,27 @@ def test_the_recipe_reports_user_errors_in_one_line(tmp_path, overrides, match):
         data = _arrays_file(costs=lambda a: a - 1.0)(data_dir / "negative.hdf5")
     if "DATA=truncated" in overrides:
         data = _truncated(data_dir / "truncated.hdf5")
+    task_file = dict(lengths=(30, 20, 40), obs_dim=28)  # PointCircle1's sizes
+    if "DATA=no-safe" in overrides:
+        arrays = make_arrays(**task_file)
+        arrays["costs"] = arrays["costs"] * 0 + 5.0  # every episode far over the threshold of 25
+        data = write_dsrl_file(data_dir / "no-safe.hdf5", arrays, metadata=_task_metadata())
+    if "DATA=task" in overrides:  # a good PointCircle1 file
+        data = write_dsrl_file(data_dir / "task.hdf5", make_arrays(**task_file), metadata=_task_metadata())
+    if "DATA=big-actions" in overrides:
+        arrays = make_arrays(**task_file)
+        arrays["actions"] = arrays["actions"] * 1e6
+        data = write_dsrl_file(data_dir / "big-actions.hdf5", arrays, metadata=_task_metadata())
     if "RUN=existing" in overrides:
         (run_dir / "results.json").write_text(json.dumps({"status": "finished"}))
+    if "RUN=a-file" in overrides:
+        run_dir.rmdir()
+        run_dir.write_text("a file where the run directory should be")
+    if "RUN=uncreatable" in overrides:
+        run_dir = run_dir / "file" / "run"
+        (run_dir.parent.parent / "file").write_text("")
+    existing_run = "RUN=existing" in overrides
+    run_before = _snapshot(run_dir) if existing_run else None
     if "RUN=blocked-checkpoints" in overrides:
         (run_dir / "checkpoints").write_text("a file where the folder should be")
     overrides = [o for o in overrides if not o.startswith(("DATA=", "RUN="))]
@@ -311,3 +439,5 @@ def test_the_recipe_reports_user_errors_in_one_line(tmp_path, overrides, match):
     assert "Traceback" not in proc.stderr
     assert _snapshot(data_dir) == before
     assert not (run_dir / "run.lock").exists()
+    if existing_run:  # a refused command leaves an existing run as it was
+        assert _snapshot(run_dir) == run_before

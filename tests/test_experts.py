@@ -161,7 +161,7 @@ def test_resume_refuses_other_settings(tmp_path):
 
 @needs_safety_gymnasium
 def test_diverged_training_fails_with_one_line(tmp_path):
-    from spoil_torchrl.experts.ppo import TrainingDiverged
+    from spoil_torchrl.divergence import TrainingDiverged
 
     with pytest.raises(TrainingDiverged, match="batch 0: .* not finite"):
         _train(tmp_path, _tiny_config(actor_lr=1e30, critic_lr=1e30, max_grad_norm=1e30))

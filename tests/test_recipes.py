@@ -379,3 +379,82 @@ def test_minari_export_and_training_on_it(tmp_path, tiny_pc1_dataset):
     results = json.loads((tmp_path / "train" / "results.json").read_text())
     assert results["status"] == "finished" and results["data"]["safe"]["episodes"] == 2
     assert results["data"]["unlabeled"]["episodes"] == 12
+
+
+def _report_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("report", ROOT / "recipes" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    return report
+
+
+def _finished_run(folder: Path, seed: int, fingerprint: str | None, name: str = "pc1-data") -> Path:
+    metrics = {"normalized_feasible_return": 0.5, "normalized_cost": 0.5, "normalized_return": 0.6}
+    results = {
+        "status": "finished",
+        "dataset": name,
+        "algo": "bc",
+        "seed": seed,
+        "aggregate": metrics,
+        "total_seconds": 60.0,
+        "evaluations": [{"step": 100, **metrics}],
+        "data": {"fingerprint": fingerprint},
+    }
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps(results))
+    return folder
+
+
+def test_report_refuses_to_average_runs_of_different_data(tmp_path):
+    report = _report_module()
+    _finished_run(tmp_path / "a", 0, "aaaa")
+    _finished_run(tmp_path / "b", 1, "aaaa")
+    _finished_run(tmp_path / "legacy", 2, None)  # made before runs recorded their data: not checked
+    assert len(report.load_runs([tmp_path])[("pc1-data", "bc")]) == 3
+    _finished_run(tmp_path / "c", 3, "bbbb")
+    with pytest.raises(ValueError, match="trained on different data.*data aaaa.*data bbbb"):
+        report.load_runs([tmp_path])
+
+
+def test_a_run_of_an_overridden_source_is_named_after_it():
+    from omegaconf import OmegaConf
+
+    from spoil_torchrl.trainers.settings import name_dataset_by_source
+
+    cfg = OmegaConf.create({"dataset": {"name": "point-circle1-mixed", "source": "file:/d/mine.hdf5"}})
+    name_dataset_by_source(cfg, ["dataset.source=file:/d/mine.hdf5", "seed=1"])
+    assert cfg.dataset.name == "mine"
+    cfg = OmegaConf.create({"dataset": {"name": "given", "source": "file:/d/mine.hdf5"}})
+    name_dataset_by_source(cfg, ["dataset.source=file:/d/mine.hdf5", "dataset.name=given"])
+    assert cfg.dataset.name == "given"
+
+
+@pytest.mark.parametrize(
+    "flag, target, message",
+    [
+        ("--plot", "DIR", "is a directory"),
+        ("--plot", "plot", "ending in .png, .pdf or .svg"),
+        ("--curves", "DIR", "is a directory"),
+        ("--out", "DIR", "is a directory"),
+        ("--out", "/proc/report.md", "cannot write"),
+    ],
+)
+def test_report_outputs_are_files_the_user_named(tmp_path, flag, target, message):
+    runs = tmp_path / "runs"
+    _finished_run(runs / "a", 0, "aaaa")
+    out_dir = tmp_path / "existing"
+    out_dir.mkdir()
+    (tmp_path / "existing.png").write_text("the user's own file")
+    path = (
+        str(out_dir) if target == "DIR" else str(tmp_path / target) if not target.startswith("/") else target
+    )
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "report.py"), str(runs), flag, path],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode != 0 and message in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert (tmp_path / "existing.png").read_text() == "the user's own file" and not list(out_dir.iterdir())

@@ -208,11 +208,25 @@ def _step(checkpoint: Path) -> int | None:
         return None
 
 
+def _files(run_dir: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file of the directory with its bytes and modification time (what a refused command must keep)."""
+    return {
+        str(p.relative_to(run_dir)): (p.read_bytes(), p.stat().st_mtime_ns)
+        for p in run_dir.rglob("*")
+        if p.is_file()
+    }
+
+
 def test_resume_refuses_other_settings_and_a_damaged_checkpoint(tmp_path, tiny_pc1_dataset):
     run_dir = tmp_path / "run"
     _kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
+    before = _files(run_dir)
+    assert ".hydra/overrides.yaml" in before and "run.lock" in before  # the killed run's record and lock
     proc = _run(tiny_pc1_dataset, run_dir, "resume=true", "train.lr=0.1", ok=False)
     assert proc.returncode == 2 and "train.lr" in proc.stderr
+    assert _files(run_dir) == before  # the refused command changed nothing, Hydra's record included
+    proc = _run(tiny_pc1_dataset, run_dir, ok=False)  # a start over it
+    assert proc.returncode == 2 and "already holds a run" in proc.stderr and _files(run_dir) == before
     checkpoint = run_dir / "checkpoints" / "training_state.pt"
     data = bytearray(checkpoint.read_bytes())
     data[len(data) // 2] ^= 0xFF
@@ -234,9 +248,12 @@ def test_sigterm_marks_the_run_interrupted_and_keeps_its_checkpoint(tmp_path, ti
     while _evaluations(run_dir) < 1 and time.monotonic() < deadline:
         time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
-    proc.communicate(timeout=120)
+    _, stderr = proc.communicate(timeout=120)
     results = json.loads((run_dir / "results.json").read_text())
     assert results["status"] == "interrupted" and "SIGTERM" in results["error"]
+    assert proc.returncode == 130 and "Traceback" not in stderr, stderr[-2000:]
+    line = [ln for ln in stderr.splitlines() if ln.startswith("interrupted; continue with: python")]
+    assert len(line) == 1 and f"hydra.run.dir={run_dir} resume=true" in line[0]
     assert (run_dir / "checkpoints" / "training_state.pt").exists() and not (run_dir / "run.lock").exists()
 
 
@@ -285,3 +302,35 @@ def test_hydra_launchers_run_a_two_job_sweep(tmp_path, tiny_pc1_dataset, launche
     extra = ["hydra.launcher.n_jobs=2"] if launcher == "joblib" else ["hydra.launcher.timeout_min=10"]
     results, paths = _sweep(tmp_path, tiny_pc1_dataset, f"hydra/launcher={launcher}", "seed=0,1", *extra)
     assert sorted(r["seed"] for r in results) == [0, 1] and all(r["status"] == "finished" for r in results)
+
+
+def test_commands_refused_on_a_finished_run_leave_it_byte_identical(
+    tmp_path, uninterrupted, tiny_pc1_dataset
+):
+    run_dir = tmp_path / "run"
+    shutil.copytree(uninterrupted, run_dir)
+    before = _files(run_dir)
+    for overrides, message in (
+        ((), "already holds a run"),
+        (("resume=true",), "has finished"),
+        (("resume=auto", "train.lr=0.5"), "has finished"),
+    ):
+        proc = _run(tiny_pc1_dataset, run_dir, *overrides, ok=False)
+        assert proc.returncode == 2 and message in proc.stderr, proc.stderr[-2000:]
+        assert _files(run_dir) == before, overrides
+
+
+def test_a_diverged_run_fails_in_one_line_and_the_report_leaves_it_out(tmp_path, tiny_pc1_dataset):
+    run_dir = tmp_path / "diverged"
+    proc = _run(tiny_pc1_dataset, run_dir, "train.lr=1e10", ok=False)
+    failed = [ln for ln in proc.stderr.splitlines() if ln.startswith("failed: ")]
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert len(failed) == 1 and "is not finite" in failed[0] and "by step" in failed[0]
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["status"] == "failed" and "TrainingDiverged" in results["error"]
+    assert not list(ROOT.glob("MUJOCO_LOG.TXT"))
+    report = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "report.py"), str(tmp_path)], capture_output=True, text=True
+    )
+    assert report.returncode != 0 and "no finished results.json" in report.stderr
+    assert f"skipped {run_dir}: failed (TrainingDiverged:" in report.stderr

@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 
 from spoil_torchrl.data.hdf5 import write_dsrl_file
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
+from spoil_torchrl.divergence import check_finite
 from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers.precision import intra_op_threads, matmul_precision
@@ -163,7 +164,10 @@ def rollout(
                 )
                 # an unbounded (Normal) policy's action is clipped to the bounds, and stored clipped
                 space = envs[0].action_space
-                actions = np.clip(policy(td)["action"].cpu().numpy(), space.low, space.high)
+                actions = policy(td)["action"].cpu().numpy()
+                # a NaN action makes MuJoCo reset the simulation: its episodes would look costless
+                check_finite("the policy's action", actions, f"{env_id} rollout", "the policy diverged")
+                actions = np.clip(actions, space.low, space.high)
             still = []
             for j, i in enumerate(active):
                 seen = None if record is None else record(envs[i])

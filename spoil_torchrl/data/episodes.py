@@ -78,6 +78,12 @@ next_observations, actions, rewards, costs, terminals, timeouts)
     missing = [k for k in DSRL_KEYS if k not in arrays]
     if missing:
         raise DatasetError(f"{source}: missing array '{missing[0]}' (a DSRL file has {', '.join(DSRL_KEYS)})")
+    for key in ("terminals", "timeouts"):  # text or objects cannot be flags (numbers and bools can)
+        kind = getattr(getattr(arrays[key], "dtype", None), "kind", "f")
+        if kind not in "biuf" and not isinstance(arrays[key], torch.Tensor):
+            raise DatasetError(
+                f"{source}: '{key}' must hold 0/1 flags (bool or numbers), got dtype {arrays[key].dtype}"
+            )
     out = {k: _tensor(arrays[k]) for k in DSRL_KEYS}
     lengths = {k: v.shape[0] if v.ndim else 0 for k, v in out.items()}
     if len(set(lengths.values())) != 1:
@@ -215,7 +221,46 @@ def fit_observation_normalizer(episodes: TensorDict, ids=None) -> ObservationNor
         [1.0]
     """
     observations = episodes["observation"] if ids is None else select_episodes(episodes, ids)["observation"]
+    warn_erased_features(observations)
     return ObservationNormalizer.from_observations(observations)
+
+
+#: A column whose standard deviation exceeds this many robust spreads (median absolute deviation) is dominated
+#: by a few extreme values: standardising by it squeezes every other row of that feature to about 0.
+ERASE_RATIO = 1e3
+
+
+def warn_erased_features(observations: torch.Tensor) -> list[int]:
+    """Warn, naming each column, where a few extreme values dominate the standard deviation the standardiser
+    would divide by (std > :data:`ERASE_RATIO` x the median absolute deviation), so that the feature is erased
+    for every other row; returns those columns.
+
+    Examples:
+        >>> import warnings
+        >>> x = torch.randn(1000, 2); x[3, 1] = 1e30
+        >>> with warnings.catch_warnings(record=True) as caught:
+        ...     warnings.simplefilter("always")
+        ...     warn_erased_features(x)
+        [1]
+        >>> "observation column 1" in str(caught[0].message)
+        True
+    """
+    x = observations.double()
+    median = x.median(0).values
+    mad = (x - median).abs().median(0).values
+    std = x.std(0) if x.shape[0] > 1 else torch.zeros_like(median)
+    erased = ((mad > 0) & (std > ERASE_RATIO * mad)).nonzero().reshape(-1).tolist()
+    for column in erased:
+        row = int((x[:, column] - median[column]).abs().argmax())
+        warnings.warn(
+            f"observation column {column}: its standard deviation {float(std[column]):.3g} is "
+            f"{float(std[column] / mad[column]):.3g}x its typical spread (median absolute deviation "
+            f"{float(mad[column]):.3g}), driven by extreme values such as {float(x[row, column]):.3g} at row {row}; "
+            "standardising by it erases this feature for the other rows (check the data, or set "
+            "normalize_observations=false)",
+            stacklevel=2,
+        )
+    return erased
 
 
 def standardize_observations(episodes: TensorDict, normalizer: ObservationNormalizer) -> TensorDict:

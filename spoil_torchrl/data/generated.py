@@ -22,12 +22,15 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from spoil_torchrl.data.collect import RANDOM_POLICY, Segment, collect
 from spoil_torchrl.data.labeling import POOLS
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
+from spoil_torchrl.tasks import UnknownDatasetError
 
 
 @dataclass(frozen=True)
@@ -100,7 +103,9 @@ DEFAULT_DATASET = "point-circle1-mixed"
 def get_generated(name: str) -> GeneratedDataset:
     """The recipe of a named generated dataset; an unknown name raises with the known ones."""
     if name not in GENERATED_DATASETS:
-        raise KeyError(f"unknown generated dataset {name!r}; known: {', '.join(GENERATED_DATASETS)}")
+        raise UnknownDatasetError(
+            f"unknown generated dataset {name!r}; known: {', '.join(GENERATED_DATASETS)}"
+        )
     return GENERATED_DATASETS[name]
 
 
@@ -130,6 +135,50 @@ def missing_generated_error(name: str) -> str:
     )
 
 
+#: A temporary file of a dataset write that has not changed for this long belongs to a write that was killed.
+STALE_SECONDS = 3600.0
+
+
+def report_stale_temporaries(path: Path) -> list[Path]:
+    """Warn about ``<name>.hdf5.<random>.tmp`` files beside ``path`` that no write has touched for
+    :data:`STALE_SECONDS` (left by a write that was killed: a live write keeps its file growing) and say how
+    to remove them; returns them. They are not deleted: a write on another machine sharing the folder could
+    still be slow.
+
+    Examples:
+        >>> import os, tempfile, time
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> old = folder / "data.hdf5.x1y2.tmp"; _ = old.write_bytes(b"")
+        >>> os.utime(old, (time.time() - 7200, time.time() - 7200))
+        >>> import warnings
+        >>> with warnings.catch_warnings(record=True) as caught:
+        ...     stale = report_stale_temporaries(folder / "data.hdf5")
+        >>> [p.name for p in stale], "interrupted writes" in str(caught[0].message)
+        (['data.hdf5.x1y2.tmp'], True)
+    """
+    now = time.time()
+    try:
+        candidates = list(path.parent.glob(f"{path.name}.*.tmp"))
+    except OSError:
+        return []
+    stale = []
+    for tmp in sorted(candidates):
+        try:
+            if now - tmp.stat().st_mtime > STALE_SECONDS:
+                stale.append(tmp)
+        except OSError:  # removed meanwhile
+            continue
+    if stale:
+        size = sum(p.stat().st_size for p in stale if p.exists()) / 2**20
+        warnings.warn(
+            f"{len(stale)} temporary file(s) of interrupted writes of {path.name} ({size:.0f} MB), untouched for "
+            f"over {STALE_SECONDS / 3600:.0f} h: {', '.join(p.name for p in stale)} in {path.parent}; delete them "
+            f"(rm {path.parent}/{path.name}.*.tmp) once no other machine is writing this dataset",
+            stacklevel=2,
+        )
+    return stale
+
+
 def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progress: bool = True) -> Path:
     """The path of the generated dataset ``name``, making it first if it is not cached (or ``force``).
 
@@ -145,6 +194,7 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
 
     spec = get_generated(name)
     path = generated_path(name)
+    report_stale_temporaries(path)
     fingerprint = spec.fingerprint(num_envs)
     if path.exists() and not force:
         cached = read_metadata(path)

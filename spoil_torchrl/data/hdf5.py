@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import tempfile
@@ -27,8 +28,23 @@ def _umask() -> int:
 
 
 def _open(path: Path) -> h5py.File:
+    if path.is_symlink():
+        try:
+            path.resolve(strict=True)
+        except RuntimeError:  # Python < 3.13 says "Symlink loop"
+            raise DatasetError(
+                f"{path}: a symlink loop (the link leads back to itself); fix the link"
+            ) from None
+        except OSError as err:
+            if err.errno == errno.ELOOP:
+                raise DatasetError(
+                    f"{path}: a symlink loop (the link leads back to itself); fix the link"
+                ) from None
+            raise DatasetError(f"{path}: a broken symlink (to {os.readlink(path)})") from None
     if not path.exists():
         raise DatasetError(f"{path}: no such file")
+    if path.is_dir():
+        raise DatasetError(f"{path}: a directory, not an HDF5 file; give the file inside it")
     if path.stat().st_size == 0:
         raise DatasetError(f"{path}: the file is empty (0 bytes); delete it and fetch it again")
     if not h5py.is_hdf5(path):
@@ -36,9 +52,32 @@ def _open(path: Path) -> h5py.File:
     try:
         return h5py.File(path, "r")
     except (OSError, RuntimeError) as err:  # h5py raises RuntimeError for some damaged headers
+        if getattr(err, "errno", None) in (errno.EAGAIN, errno.EACCES) and "lock" in str(err):
+            raise DatasetError(
+                f"{path}: another process has this file open for writing (HDF5 file locking); wait for it to "
+                "finish, then run again (the file is not damaged: keep it)"
+            ) from None
         raise DatasetError(
             f"{path}: the HDF5 file is truncated or corrupt ({err}); delete it and fetch it again"
         ) from err
+
+
+def _refuse_float32_overflow(dset: h5py.Dataset, target: np.ndarray, path: Path, key: str) -> None:
+    """A float64 value beyond float32's range became infinite when read as float32: say so (the file itself
+    holds no infinity). Checked in row chunks, like the non-finite check of the arrays."""
+    rows = 1 << 16
+    for start in range(0, target.shape[0], rows):
+        inf = np.isinf(target[start : start + rows])
+        if inf.any():
+            row = start + int(inf.reshape(inf.shape[0], -1).any(-1).nonzero()[0][0])
+            original = np.asarray(dset[row], dtype=np.float64)
+            if np.isfinite(original).all():
+                value = original.reshape(-1)[np.isinf(np.asarray(target[row]).reshape(-1))][0]
+                raise DatasetError(
+                    f"{path}: '{key}' holds {value:.3g} at row {row}, beyond the float32 range (±3.4e38) in "
+                    "which the data are trained on; rescale that column"
+                )
+            return
 
 
 def _read(dset: h5py.Dataset, path: Path, key: str, memmap_dir: Path | None) -> np.ndarray | torch.Tensor:
@@ -56,11 +95,13 @@ def _read(dset: h5py.Dataset, path: Path, key: str, memmap_dir: Path | None) -> 
             out = target = np.empty(dset.shape, dtype=dtype)
         if dset.size:
             dset.read_direct(target)  # HDF5 converts the type while reading: no intermediate copy
-        return out
     except (OSError, ValueError, TypeError) as err:
         raise DatasetError(
             f"{path}: cannot read '{key}' ({err}); the file may be truncated or corrupt"
         ) from err
+    if dset.size and dtype == np.float32 and dset.dtype.kind == "f" and dset.dtype.itemsize > 4:
+        _refuse_float32_overflow(dset, target, path, key)
+    return out
 
 
 def read_dsrl_file(

@@ -11,6 +11,8 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDict
 
+from spoil_torchrl.data.episodes import DatasetError
+
 ROLES = ("safe", "performant", "nonpreferred", "unlabeled")
 POOLS = ("safe-high", "safe-medium", "unsafe-high", "unsafe-medium")
 
@@ -54,7 +56,7 @@ def ilsp_return_threshold(stats: TensorDict, cost_threshold: float, return_quant
         raise ValueError(f"return_quantile must lie in [0, 1], got {return_quantile}")
     safe_returns = stats["return"][stats["cost"] <= cost_threshold]
     if safe_returns.numel() == 0:
-        raise ValueError(
+        raise DatasetError(
             f"no episode has cost <= {cost_threshold} (lowest episode cost: {stats['cost'].min().item():.4g}); "
             "the IL-SP return threshold is defined from safe episodes"
         )

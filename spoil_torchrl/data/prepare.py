@@ -3,9 +3,12 @@ and the return normalisation (paper F.1 for IL-SP labelling, F.2 for controlled 
 
 from __future__ import annotations
 
+import hashlib
+import math
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import PurePath
 
 import torch
 from tensordict import TensorDict
@@ -15,6 +18,7 @@ from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.generated import ensure_generated
 from spoil_torchrl.data.labeling import controlled_mix, draw, episode_stats, label_ilsp
 from spoil_torchrl.data.load import load_episodes, parse_source, read_source_metadata
+from spoil_torchrl.files import update_digest
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.tasks import ENV_TASKS, get_dsrl_dataset
 
@@ -33,6 +37,21 @@ class PreparedDataset:
     return_range: tuple[float, float]
     metadata: dict = field(default_factory=dict)
 
+    def fingerprint(self) -> str:
+        """SHA-256 (16 hex digits) of every stored transition, whatever file or format they came from.
+
+        Examples:
+            >>> episodes = TensorDict({"observation": torch.zeros(2, 1)}, [2])
+            >>> a = PreparedDataset(episodes, {}, "SafetyPointCircle1-v0", 25.0, (0.0, 1.0)).fingerprint()
+            >>> episodes["observation"][0] = 1.0
+            >>> a == PreparedDataset(episodes, {}, "SafetyPointCircle1-v0", 25.0, (0.0, 1.0)).fingerprint()
+            False
+        """
+        digest = hashlib.sha256()
+        for key in sorted(self.episodes.keys(include_nested=True, leaves_only=True), key=str):
+            update_digest(digest, str(key), self.episodes.get(key))
+        return digest.hexdigest()[:16]
+
     def summary(self) -> dict:
         """Sizes of the roles (episodes and transitions) and the constants, for logs and ``results.json``."""
         stats = episode_stats(self.episodes)
@@ -41,6 +60,7 @@ class PreparedDataset:
             "cost_threshold": self.cost_threshold,
             "return_range": self.return_range,
             "stack": self.metadata.get("stack"),  # what the data were made on (None: not recorded)
+            "fingerprint": self.fingerprint(),  # which data: the report never averages runs of different data
         }
         for role, ids in self.roles.items():
             out[role] = {
@@ -65,6 +85,20 @@ def _source_constants(source: str, metadata: dict) -> tuple[str | None, float | 
     else:  # a Minari dataset's reference scores, when it has them
         rng = metadata.get("return_range")
     return metadata.get("env_id"), metadata.get("cost_threshold"), rng
+
+
+def _check_action_bounds(actions: torch.Tensor, task, source: str) -> None:
+    """Refuse actions outside the task's box: the policies cannot produce them (tanh-squashed), so training
+    on them is fitting values no policy can take (and their log-likelihoods explode)."""
+    bound = task.action_bound * (1 + 1e-6)  # float rounding of a clipped action
+    outside = actions.abs() > bound
+    if bool(outside.any()):
+        row, column = (int(i) for i in outside.nonzero()[0])
+        raise DatasetError(
+            f"{source}: {int(outside.sum())} action values lie outside {task.env_id}'s bounds "
+            f"[-{task.action_bound:g}, {task.action_bound:g}] (first: {float(actions[row, column]):.4g} at row "
+            f"{row}, column {column}); rescale the actions to the task's bounds"
+        )
 
 
 def select_roles(
@@ -154,16 +188,25 @@ def _base_roles(
     if scheme == "stored":
         return _stored_roles(metadata)
     if scheme == "controlled":
-        return controlled_mix(
-            segment_pools(dict(metadata)),
-            n_safe=int(cfg["n_safe"]),
-            performance=float(cfg["performance"]),
-            n_performant=int(cfg["n_performant"]),
-            safeness=float(cfg["safeness"]),
-            n_unlabeled=None if n_unlabeled is None else int(n_unlabeled),
-            seed=seed,
-        )
-    labels = label_ilsp(episodes, cost_threshold, float(cfg.get("return_quantile", 0.9)))
+        try:
+            return controlled_mix(
+                segment_pools(dict(metadata)),
+                n_safe=int(cfg["n_safe"]),
+                performance=float(cfg["performance"]),
+                n_performant=int(cfg["n_performant"]),
+                safeness=float(cfg["safeness"]),
+                n_unlabeled=None if n_unlabeled is None else int(n_unlabeled),
+                seed=seed,
+            )
+        except ValueError as err:  # sizes the pools cannot give
+            raise DatasetError(
+                f"{cfg['source']}: {err} (dataset.n_safe={cfg['n_safe']}, n_performant={cfg['n_performant']}, "
+                f"n_unlabeled={n_unlabeled}); lower the sizes"
+            ) from None
+    try:
+        labels = label_ilsp(episodes, cost_threshold, float(cfg.get("return_quantile", 0.9)))
+    except DatasetError as err:
+        raise DatasetError(f"{cfg['source']}: {err} (or raise dataset.cost_threshold)") from None
     roles = {}
     for role, key, offset in (("safe", "n_safe", 0), ("performant", "n_performant", 1)):
         ids, k = labels[role], int(cfg[key])
@@ -174,6 +217,11 @@ def _base_roles(
             )
         roles[role] = draw(ids, k, seed=seed + offset)
     unlabeled = labels["unlabeled"]
+    if n_unlabeled is not None and int(n_unlabeled) > unlabeled.numel():
+        raise DatasetError(
+            f"the dataset has {unlabeled.numel()} episodes, fewer than n_unlabeled={n_unlabeled}; lower "
+            "n_unlabeled (null: every episode)"
+        )
     roles["unlabeled"] = (
         unlabeled if n_unlabeled is None else draw(unlabeled, int(n_unlabeled), seed=seed + 2)
     )
@@ -214,6 +262,29 @@ def prepare_dataset(
         raise DatasetError(f"{source}: no cost threshold known; set dataset.cost_threshold")
     if return_range is None:
         raise DatasetError(f"{source}: no return range known; set dataset.return_range=[R_min,R_max]")
+    try:
+        low, high = (float(v) for v in return_range)
+        ok = math.isfinite(low) and math.isfinite(high) and low < high
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise DatasetError(
+            f"{source}: its metadata gives the return range {return_range!r}, not two finite numbers R_min < "
+            "R_max; set dataset.return_range=[R_min,R_max]"
+        )
+    if not (isinstance(threshold, (int, float)) and math.isfinite(threshold) and threshold >= 0):
+        raise DatasetError(
+            f"{source}: its metadata gives the cost threshold {threshold!r}; set dataset.cost_threshold"
+        )
+    task = ENV_TASKS.get(env_id or source_env or "")
+    obs_dim, act_dim = episodes["observation"].shape[-1], episodes["action"].shape[-1]
+    if task is not None and (obs_dim, act_dim) != (task.observation_dim, task.action_dim):
+        raise DatasetError(
+            f"{source}: observation/action sizes {obs_dim}/{act_dim}, but {task.env_id} has "
+            f"{task.observation_dim}/{task.action_dim}: the data belong to another task (set task=...)"
+        )
+    if task is not None:
+        _check_action_bounds(episodes["action"], task, source)
     roles = select_roles(
         episodes, cfg, cost_threshold=float(threshold), metadata=metadata, seed=seed, extra_roles=extra_roles
     )
@@ -225,3 +296,17 @@ def prepare_dataset(
         (float(return_range[0]), float(return_range[1])),
         metadata,
     )
+
+
+def source_name(source: str) -> str:
+    """A dataset name made from its source, for a run whose ``dataset.source`` was set without a
+    ``dataset.name``: the file's stem, or the id after the scheme.
+
+    Examples:
+        >>> source_name("file:/data/pc1-noisy.hdf5"), source_name("dsrl:OfflinePointCircle1Gymnasium-v0")
+        ('pc1-noisy', 'OfflinePointCircle1Gymnasium-v0')
+    """
+    scheme, _, rest = source.partition(":")
+    if scheme == "file" or not rest:
+        return PurePath(rest or source).stem
+    return rest

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import gymnasium
 import numpy as np
 import torch
@@ -29,6 +31,21 @@ class CostInInfo(gymnasium.Wrapper):
         info = dict(info)
         info["cost"] = np.zeros(1, dtype=np.float32)
         return obs, info
+
+
+def log_mujoco_warnings(logger: logging.Logger | None = None) -> None:
+    """Send MuJoCo's warnings (e.g. "Nan, Inf or huge value in QACC") to ``logger`` (default this module's),
+    and so into a run's log, instead of MuJoCo's default: a ``MUJOCO_LOG.TXT`` file in the working directory.
+
+    Examples:
+        >>> log_mujoco_warnings()
+    """
+    try:
+        import mujoco
+    except ImportError:  # no simulator installed: nothing to route
+        return
+    target = logger or logging.getLogger(__name__)
+    mujoco.set_mju_user_warning(lambda message: target.warning(f"MuJoCo: {message}"))
 
 
 def make_safety_gymnasium(env_id: str, *, fast_reset: bool = True, **kwargs) -> gymnasium.Env:

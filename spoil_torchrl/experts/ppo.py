@@ -38,6 +38,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 from tqdm.auto import tqdm
 
+from spoil_torchrl.divergence import check_finite
 from spoil_torchrl.experts.replay import ReplayRecorder
 from spoil_torchrl.files import write_atomic
 from spoil_torchrl.modules import make_actor, make_value_network
@@ -89,10 +90,6 @@ class PPOConfig:
         if not isinstance(self.record_episodes, int) or self.record_episodes < 0:
             raise ValueError(f"ppo.record_episodes = {self.record_episodes!r}: expected an integer >= 0")
         self.hidden_cells = tuple(self.hidden_cells)
-
-
-class TrainingDiverged(RuntimeError):
-    """A loss, a weight or the multiplier became NaN or infinite; the run stops instead of training on."""
 
 
 def batch_seed(seed: int, batch: int) -> int:
@@ -188,11 +185,8 @@ class _Learner(nn.Module):
 
 
 def _check_finite(what: str, value: torch.Tensor, batch: int) -> None:
-    if not bool(torch.isfinite(value).all()):
-        raise TrainingDiverged(
-            f"batch {batch}: {what} is not finite ({value.detach().reshape(-1)[:3].tolist()}); lower the "
-            "learning rates (ppo.actor_lr, ppo.critic_lr, ppo.lagrange_lr) or ppo.max_grad_norm"
-        )
+    advice = "lower the learning rates (ppo.actor_lr, ppo.critic_lr, ppo.lagrange_lr) or ppo.max_grad_norm"
+    check_finite(what, value.detach(), f"batch {batch}", advice)
 
 
 def ppo_update(learner: _Learner, batch: TensorDict, config: PPOConfig, index: int, cost: float) -> None:

@@ -26,6 +26,8 @@ from torchrl.objectives import LossModule
 from torchrl.trainers import OptimizationStepper, Trainer
 from tqdm.auto import tqdm
 
+from spoil_torchrl.divergence import check_finite
+
 _stop_reason: str | None = None
 
 
@@ -50,6 +52,12 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM,)) -> None:
 def _raise_if_stopped() -> None:
     if _stop_reason is not None:
         raise KeyboardInterrupt(_stop_reason)
+
+
+#: What a diverged main stage is told to try.
+DIVERGED_ADVICE = (
+    "the run diverged: lower train.lr (and the algorithm's own rates) or check the data for extreme values"
+)
 
 
 class OfflineBatchSource:
@@ -347,4 +355,10 @@ def offline_trainer(
     trainer.register_op("post_steps", lambda: trainer.progress.update(trainer.collected_frames))
     trainer.register_op("process_optim_batch", SampleBuffers(sample))
     trainer.register_op("post_steps", _raise_if_stopped)  # see stop_on_signals
+
+    def stop_if_diverged(optim_steps: int, losses: TensorDictBase | None) -> None:  # the chunk's mean losses
+        for key, value in {} if losses is None else losses.items():
+            check_finite(f"loss {key}", value, f"by step {trainer.collected_frames}", DIVERGED_ADVICE)
+
+    trainer.register_op("post_optim_complete_log", stop_if_diverged)
     return trainer

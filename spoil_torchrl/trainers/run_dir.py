@@ -1,20 +1,29 @@
 """A run directory's life: one process writes it at a time, and no start ever destroys a run that is there.
 
-:func:`claim_run_dir` is the first thing a run does: it refuses a directory that another live process is
-writing, refuses to start over a run that is already there unless asked to resume it, and then writes a lock
-file (``run.lock``: the process id, its start time, the host and the cluster job, if any) that
-:func:`release_run_dir` removes at the end. A run killed with SIGKILL cannot mark itself, but it leaves its
+:func:`claim_run_dir` is the first thing a run does, before anything is written into the directory: it takes
+an exclusive :func:`fcntl.flock` on the lock file (``run.lock``), so of many processes started at once on one
+directory exactly one goes on; it refuses a directory that another live process is writing, refuses to start
+over a run that is already there unless asked to resume it, and then writes into the lock file the process id,
+its start time, the host and the cluster job, if any. The operating system drops the ``flock`` when the process
+ends, however it ends; :func:`release_run_dir` removes the file at the end. A refused start writes nothing.
+
+A run killed with SIGKILL cannot mark itself, but it leaves its
 lock behind with a process id that is gone; :func:`run_status` reads that as ``"killed"``, so a reader
 (``recipes/report.py``) can tell a killed run from one that is still training.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import socket
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+
+from hydra.experimental.callback import Callback
 
 from spoil_torchrl.files import write_atomic
 
@@ -101,7 +110,12 @@ def run_status(run_dir: str | os.PathLike, results: dict | None = None) -> str:
     return status if alive else f"{status} on {lock.get('host')}"
 
 
-def claim_run_dir(run_dir: str | os.PathLike, *, resume: bool | str = False) -> bool:
+def claim_run_dir(
+    run_dir: str | os.PathLike,
+    *,
+    resume: bool | str = False,
+    check: Callable[[bool], None] | None = None,
+) -> bool:
     """Take ``run_dir`` for this process; returns whether the run there is to be resumed.
 
     Args:
@@ -110,6 +124,9 @@ def claim_run_dir(run_dir: str | os.PathLike, *, resume: bool | str = False) -> 
             refused. ``True`` -- continue the run there from its checkpoint (refused without one).
             ``"auto"`` -- continue if there is a checkpoint, else start afresh (what a requeued cluster job
             wants).
+        check: called with whether the run is to be resumed, after these checks and before anything is written
+            (e.g. that a resumed run's settings are its own): what it raises refuses the claim, and the
+            directory is left as it was.
 
     Raises:
         RunDirError: another live process writes the directory, it holds a run and ``resume`` is ``False``,
@@ -134,6 +151,69 @@ def claim_run_dir(run_dir: str | os.PathLike, *, resume: bool | str = False) -> 
     if resume not in RESUME_CHOICES:
         raise RunDirError(f"resume must be one of true, false, auto; got {resume!r}")
     run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise RunDirError(f"{run_dir} is a file, not a run directory; choose another hydra.run.dir")
+    held = str(run_dir.resolve()) in _HELD
+    fd, created = (None, False) if held else _flock(run_dir)
+    try:
+        resuming = _check_claim(run_dir, resume)
+        if check is not None:
+            check(resuming)
+        write_lock(run_dir, fd)
+    except BaseException:
+        if created:  # a refused start leaves the directory as it found it
+            (run_dir / LOCK_NAME).unlink(missing_ok=True)
+        if fd is not None:
+            os.close(fd)
+        raise
+    if fd is not None:
+        _HELD[str(run_dir.resolve())] = fd
+    return resuming
+
+
+#: The lock files this process holds (resolved run directory -> open descriptor with the flock).
+_HELD: dict[str, int] = {}
+
+
+def _flock(run_dir: Path) -> tuple[int, bool]:
+    """Open ``run.lock`` and take its exclusive flock without waiting; refuse if another process has it.
+    Returns the descriptor and whether this call created the file."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise RunDirError(f"{run_dir}: cannot create the run directory ({err.strerror})") from None
+    path = run_dir / LOCK_NAME
+    while True:
+        try:
+            try:
+                fd, created = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644), True
+            except FileExistsError:
+                fd, created = os.open(path, os.O_RDWR), False
+        except FileNotFoundError:  # removed between the two opens: try again
+            continue
+        except OSError as err:
+            raise RunDirError(
+                f"{run_dir}: cannot write there ({err.strerror}); choose another hydra.run.dir"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            lock = read_lock(run_dir) or {}
+            where = f"process {lock.get('pid', '?')} on {lock.get('host', '?')}"
+            raise RunDirError(
+                f"{run_dir} is being written by {where} (it holds {LOCK_NAME}); wait for it or stop it"
+            ) from None
+        try:  # the file may have been released (removed) between the open and the flock: then try again
+            if os.fstat(fd).st_ino == os.stat(path).st_ino:
+                return fd, created
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+def _check_claim(run_dir: Path, resume: bool | str) -> bool:
+    """Whether the claimed ``run_dir`` is to be resumed (:func:`claim_run_dir`'s checks, under the flock)."""
     lock = read_lock(run_dir)
     if lock is not None and lock.get("pid") != os.getpid() and _alive(lock) is not False:
         where = f"process {lock.get('pid')} on {lock.get('host')}"
@@ -157,13 +237,12 @@ def claim_run_dir(run_dir: str | os.PathLike, *, resume: bool | str = False) -> 
             f"resume=true, but {run_dir} has no checkpoint ({CHECKPOINT_NAME}: it is written at every "
             "evaluation with train.checkpoint=true); start afresh with resume=auto or in a new directory"
         )
-    run_dir.mkdir(parents=True, exist_ok=True)
-    write_lock(run_dir)
     return bool(resume) and checkpoint
 
 
-def write_lock(run_dir: str | os.PathLike) -> None:
-    """Write (or refresh, as a heartbeat) this process's lock in ``run_dir``."""
+def write_lock(run_dir: str | os.PathLike, fd: int | None = None) -> None:
+    """Write (or refresh, as a heartbeat) this process's lock in ``run_dir``, in place (the file keeps its
+    flock; ``fd``: its descriptor, else the one this process holds)."""
     lock = {
         "pid": os.getpid(),
         "process_start": _process_start(os.getpid()),
@@ -171,11 +250,79 @@ def write_lock(run_dir: str | os.PathLike) -> None:
         "job": _scheduler_job(),
         "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    write_atomic(Path(run_dir) / LOCK_NAME, json.dumps(lock))
+    if fd is None:
+        fd = _HELD.get(str(Path(run_dir).resolve()))
+    if fd is None:  # not claimed by this process (a caller refreshing a lock it does not hold)
+        write_atomic(Path(run_dir) / LOCK_NAME, json.dumps(lock))
+        return
+    data = json.dumps(lock).encode()
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, data, 0)
 
 
 def release_run_dir(run_dir: str | os.PathLike) -> None:
-    """Remove this process's lock (another process's lock is left alone)."""
+    """Remove this process's lock and drop its flock (another process's lock is left alone)."""
+    fd = _HELD.pop(str(Path(run_dir).resolve()), None)
     lock = read_lock(run_dir)
     if lock is not None and lock.get("pid") == os.getpid() and lock.get("host") == socket.gethostname():
         (Path(run_dir) / LOCK_NAME).unlink(missing_ok=True)
+    if fd is not None:
+        os.close(fd)
+
+
+def write_hydra_record(run_dir: str | os.PathLike, cfg) -> None:
+    """Hydra's record of the command (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``), written by the
+    recipe once it has claimed ``run_dir`` (its configs set ``hydra.output_subdir: null``, so Hydra itself
+    writes nothing into a directory before the claim: a refused command leaves a run's record as it was)."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    hydra_cfg = HydraConfig.get()
+    folder = Path(run_dir) / ".hydra"
+    write_atomic(folder / "config.yaml", OmegaConf.to_yaml(cfg))
+    write_atomic(folder / "hydra.yaml", OmegaConf.to_yaml(OmegaConf.create({"hydra": hydra_cfg})))
+    write_atomic(folder / "overrides.yaml", OmegaConf.to_yaml(list(hydra_cfg.overrides.task)))
+
+
+def resume_command(recipe: str, run_dir: str | os.PathLike) -> str:
+    """The command that continues the interrupted run of this Hydra job in ``run_dir`` (its own overrides,
+    ``hydra.run.dir`` and ``resume=true``)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    kept = [o for o in HydraConfig.get().overrides.task if not o.startswith(("hydra.run.dir=", "resume="))]
+    return " ".join(["python", recipe, *kept, f"hydra.run.dir={run_dir}", "resume=true"])
+
+
+def unusable_run_dir(run_dir: str | os.PathLike) -> str | None:
+    """Why ``run_dir`` cannot be a run directory (a file is there, it cannot be created, or it is not
+    writable), or ``None``; a missing directory is created (as Hydra would), an existing one is left as it is.
+
+    Examples:
+        >>> unusable_run_dir("/proc/no-such-run")
+        '/proc/no-such-run cannot be created (No such file or directory); choose another hydra.run.dir'
+    """
+    path = Path(run_dir).absolute()
+    if path.exists() and not path.is_dir():
+        return f"{path} is a file, not a run directory; choose another hydra.run.dir"
+    if not path.exists():
+        try:
+            path.mkdir(parents=True)
+        except FileExistsError:  # made meanwhile, or a file on the way
+            if not path.is_dir():
+                return f"{path} cannot be created: a file is on its path; choose another hydra.run.dir"
+        except OSError as err:
+            return f"{path} cannot be created ({err.strerror}); choose another hydra.run.dir"
+    elif not os.access(path, os.W_OK | os.X_OK):
+        return f"{path} is not writable; choose another hydra.run.dir"
+    return None
+
+
+class RunDirCheck(Callback):
+    """A Hydra callback (``hydra.callbacks``) that refuses an unusable ``hydra.run.dir`` in one line before
+    Hydra creates it (Hydra's own ``mkdir`` would end in a traceback)."""
+
+    def on_run_start(self, config, **kwargs) -> None:
+        problem = unusable_run_dir(config.hydra.run.dir)
+        if problem is not None:
+            print(f"error: {problem}", file=sys.stderr)
+            raise SystemExit(2)

@@ -20,6 +20,7 @@ from omegaconf import DictConfig
 
 from spoil_torchrl.data import DualDemoBuffers
 from spoil_torchrl.data.parallel import Job
+from spoil_torchrl.divergence import check_finite
 from spoil_torchrl.eval import Evaluator, RolloutWriter
 from spoil_torchrl.eval.dice_diagnostics import (
     dice_diagnostics,
@@ -32,6 +33,7 @@ from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.trainers.algorithms import PolicyTraining
 from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from spoil_torchrl.trainers.offline import DIVERGED_ADVICE
 from spoil_torchrl.trainers.precision import matmul_check
 from spoil_torchrl.trainers.resume import csv_row_counts
 from spoil_torchrl.trainers.run_dir import CHECKPOINT_NAME, write_lock
@@ -121,6 +123,8 @@ def evaluate(
     cfg, results, training = seed_run.cfg, seed_run.results, seed_run.training
     evaluation_start = time.perf_counter() if started is None else started
     with training.policy() as policy:
+        for name, weight in policy.named_parameters():  # a diverged policy is never evaluated
+            check_finite(f"policy weight {name}", weight.detach(), f"step {step}", DIVERGED_ADVICE)
         result = (
             seed_run.evaluator(policy, step) if rollout is None else seed_run.evaluator.report(rollout, step)
         )

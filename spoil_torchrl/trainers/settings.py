@@ -10,9 +10,10 @@ naming the dotted key, the value and what is expected.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+from spoil_torchrl.data.parallel import available_cores
 from spoil_torchrl.data.prepare import SCHEMES
 from spoil_torchrl.trainers.precision import MATMUL_PRECISIONS
 
@@ -69,6 +70,9 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "nu_gradient_penalty": (_penalty, "a number >= 0"),
     "hidden_cells": (_layers, "a list of layer sizes >= 1"),
     "compile": (lambda v: isinstance(v, bool), "true or false"),
+    "checkpoint": (lambda v: isinstance(v, bool), "true or false"),
+    "reference_offsets": (lambda v: isinstance(v, bool), "true or false"),
+    "standardize_reward": (lambda v: isinstance(v, bool), "true or false"),
     "matmul_precision": (lambda v: v in MATMUL_PRECISIONS, " | ".join(MATMUL_PRECISIONS)),
     "alpha": (
         lambda v: v == "auto" or _non_negative(v),
@@ -96,7 +100,28 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "return_quantile": (_unit, "a quantile in [0, 1]"),
     "cost_threshold": (_optional(_non_negative), "null or a number >= 0"),
     "scheme": (lambda v: v in SCHEMES, " or ".join(SCHEMES)),
+    "generate": (lambda v: isinstance(v, bool), "true or false"),
+    "return_range": (
+        lambda v: (
+            v is None
+            or (isinstance(v, (list, tuple)) and len(v) == 2 and all(map(_number, v)) and v[0] < v[1])
+        ),
+        "null or two finite numbers [R_min, R_max] with R_min < R_max",
+    ),
 }
+
+#: Top-level and nested settings that are switches. Hydra keeps ``no`` / ``off`` / ``0`` as they are typed
+#: (a string, an integer), and a string is always true, so anything but true or false is refused.
+SWITCHES = ("normalize_observations", "progress", "eval.frames")
+
+
+def _dotted(cfg: Mapping, name: str) -> tuple[bool, Any]:
+    node: Any = cfg
+    for part in name.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return False, None
+        node = node[part]
+    return True, node
 
 
 def _rule(key: str) -> tuple[Callable[[Any], bool], str] | None:
@@ -130,12 +155,20 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         ...
         spoil_torchrl.trainers.settings.SettingsError: seeds = [0, 1, 1]: expected null or a list of distinct integers >= 0
     """
+    cores = available_cores()
     for key, check, expected in (
         ("seed", _seed, "an integer >= 0"),
-        ("threads", _positive_int, "an integer >= 1"),
+        (
+            "threads",
+            lambda v: _positive_int(v) and v <= cores,
+            f"an integer from 1 to {cores} (this machine's cores)",
+        ),
+        ("task.eval_num_envs", _positive_int, "an integer >= 1"),
+        *((switch, lambda v: isinstance(v, bool), "true or false") for switch in SWITCHES),
     ):
-        if key in cfg and not check(cfg[key]):
-            raise SettingsError(f"{key} = {cfg[key]!r}: expected {expected}")
+        present, value = _dotted(cfg, key)
+        if present and not check(value):
+            raise SettingsError(f"{key} = {value!r}: expected {expected}")
     seeds = cfg.get("seeds")
     if seeds is not None and not (
         isinstance(seeds, (list, tuple))
@@ -155,3 +188,25 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         rule = DATASET_RULES.get(key)
         if rule is not None and not rule[0](value):
             raise SettingsError(f"dataset.{key} = {value!r}: expected {rule[1]}")
+
+
+def name_dataset_by_source(cfg, overrides: Sequence[str]) -> None:
+    """Set ``dataset.name`` from ``dataset.source`` (:func:`~spoil_torchrl.data.prepare.source_name`) when the
+    command line set the source but not the name: the name is what runs are filed and reported under, and the
+    dataset config's own name belongs to its own source.
+
+    Examples:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"dataset": {"name": "point-circle1-mixed", "source": "file:/d/noisy.hdf5"}})
+        >>> name_dataset_by_source(cfg, ["dataset.source=file:/d/noisy.hdf5"])
+        >>> cfg.dataset.name
+        'noisy'
+    """
+    from omegaconf import open_dict
+
+    from spoil_torchrl.data.prepare import source_name
+
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    if "dataset.source" in keys and "dataset.name" not in keys and "dataset" not in keys:
+        with open_dict(cfg):
+            cfg.dataset.name = source_name(str(cfg.dataset.source))

@@ -133,7 +133,15 @@ def make_logger(settings: Mapping, log_dir: Path, tracking: dict | None = None) 
             "entity": options.get("entity"),
             "log_env_packages": False,
         }
-    logger = get_logger(kind, logger_name=str(log_dir), experiment_name=labels["name"], **kwargs)
     hparams = {key: value for key, value in settings.items() if key != "resume"}
-    logger.log_hparams(hparams if kind == "wandb" else flat_hparams(hparams))  # W&B filters nested keys
+    try:
+        logger = get_logger(kind, logger_name=str(log_dir), experiment_name=labels["name"], **kwargs)
+        logger.log_hparams(hparams if kind == "wandb" else flat_hparams(hparams))  # W&B filters nested keys
+    except Exception as err:  # the service refused (no credentials, no network): before any training
+        if kind != "wandb" or not type(err).__module__.startswith("wandb"):
+            raise
+        raise SettingsError(
+            f"logger=wandb cannot start ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
+            "log in (wandb login, or WANDB_API_KEY), or log offline (logger.offline=true), or choose logger=csv"
+        ) from None
     return logger, tracking

@@ -222,3 +222,66 @@ def test_the_seeds_continue_from_the_last_step_they_all_have(tmp_path):
     save_checkpoint(seeds[1] / PREVIOUS_CHECKPOINT, {"step": 40})
     with pytest.raises(CheckpointError, match="share no step .*resume each seed on its own"):
         common_checkpoints(seeds, [True, True])
+
+
+def _claim_when_released(run_dir, barrier, outcomes, hold):
+    barrier.wait()
+    try:
+        claim_run_dir(run_dir)
+    except RunDirError:
+        outcomes.put("refused")
+        return
+    outcomes.put("claimed")
+    hold.wait(30)  # keep the claim while the others try
+    release_run_dir(run_dir)
+
+
+def _one_claimant_trials(tmp_path, trials: int, processes: int) -> None:
+    import multiprocessing
+
+    context = multiprocessing.get_context("fork")
+    for trial in range(trials):
+        run_dir = tmp_path / f"trial{trial}"
+        barrier, outcomes, hold = context.Barrier(processes), context.Queue(), context.Event()
+        workers = [
+            context.Process(target=_claim_when_released, args=(run_dir, barrier, outcomes, hold))
+            for _ in range(processes)
+        ]
+        for worker in workers:
+            worker.start()
+        results = sorted(outcomes.get(timeout=30) for _ in workers)
+        hold.set()
+        for worker in workers:
+            worker.join(30)
+        assert results == ["claimed"] + ["refused"] * (processes - 1), f"trial {trial}: {results}"
+
+
+def test_processes_released_at_once_on_one_directory_give_one_claimant(tmp_path):
+    _one_claimant_trials(tmp_path, trials=25, processes=4)
+
+
+@pytest.mark.slow
+def test_one_claimant_over_many_trials(tmp_path):
+    _one_claimant_trials(tmp_path, trials=250, processes=6)
+
+
+def test_a_refused_claim_leaves_the_directory_as_it_was(tmp_path):
+    _results(tmp_path, "finished")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for resume in (False, True, "auto"):
+        with pytest.raises(RunDirError):
+            claim_run_dir(tmp_path, resume=resume)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no lock file left behind
+    _results(tmp_path, "killed")
+
+    def other_settings(resuming):
+        raise RunDirError("other settings")
+
+    (tmp_path / CHECKPOINT_NAME).parent.mkdir()
+    (tmp_path / CHECKPOINT_NAME).write_bytes(b"x")
+    with pytest.raises(RunDirError, match="other settings"):
+        claim_run_dir(tmp_path, resume=True, check=other_settings)
+    assert not (tmp_path / LOCK_NAME).exists()
+    (tmp_path / "file").write_text("")
+    with pytest.raises(RunDirError, match="is a file"):
+        claim_run_dir(tmp_path / "file")
