@@ -11,6 +11,7 @@ The file lands in ``$SPOIL_TORCHRL_DATA_DIR`` (default ``~/.cache/spoil_torchrl/
 from __future__ import annotations
 
 import logging
+import sys
 import time
 
 import hydra
@@ -19,14 +20,22 @@ from omegaconf import DictConfig
 
 from spoil_torchrl.data import ensure_generated, get_generated, load_episodes, read_metadata, segment_pools
 from spoil_torchrl.eval import policy_table
+from spoil_torchrl.tasks import UnknownDatasetError
+from spoil_torchrl.trainers.settings import SettingsError, check_settings
 
 log = logging.getLogger(__name__)
 
 
 @hydra.main(config_path="../configs", config_name="collect_demos", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    try:
+        check_settings({"threads": cfg.threads, "progress": cfg.progress, "force": cfg.force})
+        if not (isinstance(cfg.num_envs, int) and cfg.num_envs >= 1):
+            raise SettingsError(f"num_envs = {cfg.num_envs!r}: expected an integer >= 1")
+        spec = get_generated(cfg.name)
+    except (SettingsError, UnknownDatasetError) as err:
+        sys.exit(f"error: {err}")
     torch.set_num_threads(cfg.threads)
-    spec = get_generated(cfg.name)
     start = time.perf_counter()
     path = ensure_generated(cfg.name, force=cfg.force, num_envs=cfg.num_envs, progress=cfg.progress)
     meta = read_metadata(path)

@@ -32,6 +32,7 @@ seed writes a single-seed run's files, with its settings, into ``seed<k>/`` of t
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import logging
 import math
@@ -430,6 +431,10 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
 USER_ERRORS = (SettingsError, RunDirError, CheckpointError, DatasetError, UnknownDatasetError)
 
 
+#: OS errors of a place that cannot take more writes (a full disk, a quota, a file-size limit, read-only).
+DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES)
+
+
 @hydra.main(config_path="../configs", config_name="spoildice_dsrl", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     stop_on_signals()  # SIGTERM ends the run like Ctrl-C: marked "interrupted", its checkpoint intact
@@ -448,6 +453,12 @@ def main(cfg: DictConfig) -> None:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
         print(f"failed: {err}", file=sys.stderr)
+        sys.exit(1)
+    except OSError as err:  # a full disk, a quota, a folder made read-only: marked "failed", one line
+        if os.environ.get("HYDRA_FULL_ERROR") == "1" or err.errno not in DISK_ERRORS:
+            raise
+        where = err.filename or f"into {run_dir}"
+        print(f"error: cannot write {where}: {err.strerror}; the run is marked failed", file=sys.stderr)
         sys.exit(1)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: marked "interrupted", its last checkpoint intact
         if os.environ.get("HYDRA_FULL_ERROR") == "1":

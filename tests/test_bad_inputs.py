@@ -180,6 +180,118 @@ def test_unknown_sources_ids_and_empty_roles(tmp_path):
         DualDemoBuffers(episodes, {"safe": [], "unlabeled": [0, 1, 2]})
 
 
+# -- data that load but cannot be used as configured (prepare_dataset, before any training) -------------------
+
+PC1 = "SafetyPointCircle1-v0"
+
+
+def _pc1_file(path: Path, metadata=None, change=None) -> Path:
+    arrays = make_arrays(
+        lengths=(30, 20, 40, 25), ends=("timeout", "terminal", "timeout", "timeout"), obs_dim=28
+    )
+    arrays["costs"][20:50] = 2.0  # episode 1: cost 40, over the threshold of 25 (unsafe); the others safe
+    if change is not None:
+        change(arrays)
+    meta = {"env_id": PC1, "cost_threshold": 25.0, "random_return": 0.0, "safe_high_return": 40.0}
+    return write_dsrl_file(path, arrays, metadata=meta if metadata is None else metadata)
+
+
+def _set(**values):
+    def change(arrays):
+        for key, (rows, value) in values.items():
+            arrays[key][rows] = value
+
+    return change
+
+
+PREPARE_CASES = {
+    "no safe episode": (dict(change=_set(costs=(slice(None), 5.0))), {}, "no episode has cost <= 25"),
+    "n_safe beyond its pool": ({}, {"n_safe": 9}, "3 safe episodes .* fewer than n_safe=9"),
+    "n_performant beyond its pool": ({}, {"n_performant": 9}, "fewer than n_performant=9"),
+    "n_unlabeled beyond the data": ({}, {"n_unlabeled": 99}, "4 episodes, fewer than n_unlabeled=99"),
+    "another task's observations": (
+        dict(
+            change=lambda a: a.update(
+                observations=a["observations"][:, :4], next_observations=a["next_observations"][:, :4]
+            )
+        ),
+        {},
+        "observation/action sizes 4/2, but SafetyPointCircle1-v0 has 28/2",
+    ),
+    "another task's actions": (
+        dict(change=lambda a: a.update(actions=np.zeros((len(a["actions"]), 6), np.float32))),
+        {},
+        "sizes 28/6",
+    ),
+    "recorded in another task": (
+        dict(metadata={"env_id": "SafetyHopperVelocity-v1", "cost_threshold": 25.0}),
+        {},
+        "recorded in SafetyHopperVelocity-v1, but the task is SafetyPointCircle1-v0",
+    ),
+    "actions beyond the bounds": (
+        dict(change=_set(actions=(5, 1.5))),
+        {},
+        "2 action values lie outside .* 1.5 at row 5",
+    ),
+    "inverted return range in the metadata": (
+        dict(
+            metadata={"env_id": PC1, "cost_threshold": 25.0, "random_return": 40.0, "safe_high_return": 0.0}
+        ),
+        {},
+        "return range .* not two finite numbers R_min < R_max",
+    ),
+    "text return range in the metadata": (
+        dict(metadata={"env_id": PC1, "cost_threshold": 25.0, "return_range": ["low", "high"]}),
+        {},
+        "return range .* not two finite numbers",
+    ),
+    "negative cost threshold in the metadata": (
+        dict(
+            metadata={"env_id": PC1, "cost_threshold": -3.0, "random_return": 0.0, "safe_high_return": 40.0}
+        ),
+        {},
+        "cost threshold -3.0",
+    ),
+    "no return range anywhere": (
+        dict(metadata={"env_id": PC1, "cost_threshold": 25.0}),
+        {},
+        "no return range known; set dataset.return_range",
+    ),
+    "controlled scheme on a file without pools": ({}, {"scheme": "controlled"}, "needs the typed pools"),
+    "stored scheme without stored roles": ({}, {"scheme": "stored"}, "stores no 'safe' role"),
+    "stored roles of another file": (
+        dict(
+            metadata={
+                "env_id": PC1,
+                "cost_threshold": 25.0,
+                "random_return": 0.0,
+                "safe_high_return": 40.0,
+                "roles": {"safe": [0, 7], "performant": [1], "unlabeled": [0, 1, 2]},
+            }
+        ),
+        {"scheme": "stored"},
+        "names episodes outside the dataset's 4",
+    ),
+    "no unsafe episode for SafeDICE": (
+        dict(change=_set(costs=(slice(None), 0.0))),
+        {"EXTRA": ("nonpreferred",)},
+        "unsafe|non-preferred",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(PREPARE_CASES))
+def test_data_that_cannot_be_used_as_configured_is_one_clear_error(tmp_path, case):
+    from spoil_torchrl.data.prepare import prepare_dataset
+
+    file_kwargs, overrides, match = PREPARE_CASES[case]
+    path = _pc1_file(tmp_path / "pc1.hdf5", **file_kwargs)
+    extra = overrides.pop("EXTRA", ())
+    cfg = {"source": f"file:{path}", "scheme": "ilsp", "n_safe": 1, "n_performant": 1, **overrides}
+    with pytest.raises(DatasetError, match=match):
+        prepare_dataset(cfg, env_id=PC1, progress=False, extra_roles=extra)
+
+
 # -- policy files and checkpoints -----------------------------------------------------------------------------
 
 
@@ -334,6 +446,17 @@ SETTING_CASES = [
     ({"dataset": {"return_range": "abc"}}, "dataset.return_range = 'abc'"),
     ({"dataset": {"return_range": [40, 0]}}, "dataset.return_range = [40, 0]"),
     ({"dataset": {"return_range": [0, float("inf")]}}, "dataset.return_range = [0, inf]"),
+    ({"dataset": {"performance": "half"}}, "dataset.performance = 'half'"),
+    ({"dataset": {"return_quantile": 2}}, "dataset.return_quantile = 2"),
+    ({"dataset": {"n_performant": 2.5}}, "dataset.n_performant = 2.5"),
+    ({"seeds": [0, 0]}, "seeds = [0, 0]"),
+    ({"seeds": []}, "seeds = []"),
+    ({"threads": "two"}, "threads = 'two'"),
+    ({"train": {"eval_interval": 0}}, "train.eval_interval = 0"),
+    ({"train": {"steps": 1.5}}, "train.steps = 1.5"),
+    ({"train": {"log_interval": -1}}, "train.log_interval = -1"),
+    ({"algo": {"hidden_cells": "256"}}, "algo.hidden_cells = '256'"),
+    ({"algo": {"standardize_reward": "yes"}}, "algo.standardize_reward = 'yes'"),
 ]
 
 
@@ -441,3 +564,119 @@ def test_the_recipe_reports_user_errors_in_one_line(tmp_path, overrides, match):
     assert not (run_dir / "run.lock").exists()
     if existing_run:  # a refused command leaves an existing run as it was
         assert _snapshot(run_dir) == run_before
+
+
+# -- the other commands: report, inspect, expert training -----------------------------------------------------
+
+
+def _results_json(folder: Path, seed: int, steps: int = 100) -> None:
+    metrics = {"normalized_feasible_return": 0.5, "normalized_cost": 0.5, "normalized_return": 0.5}
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(
+        json.dumps(
+            {
+                "status": "finished",
+                "dataset": "d",
+                "algo": "bc",
+                "seed": seed,
+                "aggregate": metrics,
+                "total_seconds": 1.0,
+                "evaluations": [{"step": 100, **metrics}],
+            }
+        )
+    )
+    (folder / "config.yaml").write_text(f"train:\n  steps: {steps}\n")
+
+
+def _command_case(tmp_path: Path, case: str) -> list[str]:
+    report, inspect = [str(ROOT / "recipes" / "report.py")], ["-m", "spoil_torchrl.inspect"]
+    experts = [
+        str(ROOT / "recipes" / "train_experts.py"),
+        "progress=false",
+        f"hydra.run.dir={tmp_path / 'expert'}",
+    ]
+    if case == "report: no such folder":
+        return [*report, str(tmp_path / "nowhere")]
+    if case == "report: only an unreadable results.json":
+        (tmp_path / "run").mkdir()
+        (tmp_path / "run" / "results.json").write_text("{not json")
+        return [*report, str(tmp_path)]
+    if case == "report: one dataset, two budgets":
+        _results_json(tmp_path / "a", 0, steps=100)
+        _results_json(tmp_path / "b", 1, steps=200)
+        return [*report, str(tmp_path)]
+    if case == "report: a seed twice":
+        _results_json(tmp_path / "a", 0)
+        _results_json(tmp_path / "b", 0)
+        return [*report, str(tmp_path)]
+    if case == "inspect: no such file":
+        return [*inspect, str(tmp_path / "missing.mcap")]
+    if case == "inspect: a text file":
+        (tmp_path / "notes.mcap").write_text("not a rollout file")
+        return [*inspect, str(tmp_path / "notes.mcap")]
+    if case == "inspect: an empty file":
+        (tmp_path / "empty.mcap").write_bytes(b"")
+        return [*inspect, str(tmp_path / "empty.mcap")]
+    if case == "experts: unknown task":
+        return [*experts, "env_id=SafetyPointCircle9-v0"]
+    if case == "experts: minibatch larger than the batch":
+        return [*experts, "ppo.frames_per_batch=100", "ppo.minibatch_size=1000"]
+    if case == "experts: more threads than cores":
+        return [*experts, "threads=999"]
+    if case == "experts: run directory is a file":
+        (tmp_path / "expert").write_text("")
+        return experts
+    if case == "experts: resume with nothing to resume":
+        (tmp_path / "expert").mkdir()
+        (tmp_path / "expert" / "results.json").write_text('{"status": "training"}')
+        return [*experts, "resume=true"]
+    raise AssertionError(case)
+
+
+COMMAND_CASES = {
+    "report: no such folder": "no such folder",
+    "report: only an unreadable results.json": "unreadable",
+    "report: one dataset, two budgets": "different train settings",
+    "report: a seed twice": "seed 0 of bc on d twice",
+    "inspect: no such file": "missing.mcap",
+    "inspect: a text file": "notes.mcap",
+    "inspect: an empty file": "empty.mcap",
+    "experts: unknown task": "unknown task 'SafetyPointCircle9-v0'",
+    "experts: minibatch larger than the batch": "minibatch_size = 1000 is larger",
+    "experts: more threads than cores": "threads = 999",
+    "experts: run directory is a file": "is a file, not a run directory",
+    "experts: resume with nothing to resume": "has no checkpoint",
+}
+
+
+@pytest.mark.parametrize("case", list(COMMAND_CASES))
+def test_the_other_commands_report_user_errors_in_one_line(tmp_path, case):
+    cmd = [sys.executable, *_command_case(tmp_path, case)]
+    before = _snapshot(tmp_path)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert __import__("re").search(COMMAND_CASES[case], proc.stderr), proc.stderr[-2000:]
+    assert _snapshot(tmp_path) == before  # nothing written, nothing changed
+
+
+def test_an_unknown_minari_dataset_says_where_it_was_looked_for(tmp_path, monkeypatch):
+    pytest.importorskip("minari")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    with pytest.raises(DatasetError, match=f"'nope/none-v0' is not in {tmp_path}"):
+        load_episodes("minari:nope/none-v0")
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"lagrangian": "no"}, "ppo.lagrangian = 'no'"),
+        ({"actor_lr": -1.0}, "ppo.actor_lr = -1.0"),
+        ({"gamma": float("nan")}, "ppo.gamma = nan"),
+        ({"epochs": 0}, "ppo.epochs = 0"),
+    ],
+)
+def test_expert_settings_are_checked(change, match):
+    from spoil_torchrl.experts import PPOConfig
+
+    with pytest.raises(ValueError, match=match.replace(".", r"\.")):
+        PPOConfig(**change)

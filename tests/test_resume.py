@@ -334,3 +334,25 @@ def test_a_diverged_run_fails_in_one_line_and_the_report_leaves_it_out(tmp_path,
     )
     assert report.returncode != 0 and "no finished results.json" in report.stderr
     assert f"skipped {run_dir}: failed (TrainingDiverged:" in report.stderr
+
+
+def test_a_full_disk_fails_the_run_in_one_line_and_leaves_no_temporary_file(tmp_path, tiny_pc1_dataset):
+    import resource
+
+    def small_files():  # every write past 150 kB fails (EFBIG), as on a full disk
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (150_000, 150_000))
+
+    run_dir = tmp_path / "run"
+    proc = subprocess.run(
+        _args(tiny_pc1_dataset, run_dir),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+        preexec_fn=small_files,
+    )
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines()[-1].startswith("error: cannot write")
+    assert json.loads((run_dir / "results.json").read_text())["status"] == "failed"
+    assert not [p for p in run_dir.rglob("*.tmp")] and not (run_dir / "run.lock").exists()

@@ -160,7 +160,7 @@ def _nonpreferred(
     return draw(unsafe, int(k), seed=seed + 3)
 
 
-def _stored_roles(metadata: Mapping) -> dict[str, torch.Tensor]:
+def _stored_roles(metadata: Mapping, n_episodes: int) -> dict[str, torch.Tensor]:
     """D_S, D_P, D_U as stored with the data (``metadata["roles"]``), see :func:`select_roles`."""
     stored = metadata.get("roles") or {}
     missing = [role for role in ("safe", "performant", "unlabeled") if role not in stored]
@@ -170,12 +170,22 @@ def _stored_roles(metadata: Mapping) -> dict[str, torch.Tensor]:
             f"{sorted(stored) or 'none'}); export it with its roles (recipes/export_minari.py) or use "
             "scheme=ilsp / controlled"
         )
-    roles = {
-        role: torch.as_tensor(stored[role], dtype=torch.int64) for role in ("safe", "performant", "unlabeled")
-    }
+    try:
+        roles = {
+            role: torch.as_tensor(stored[role], dtype=torch.int64)
+            for role in ("safe", "performant", "unlabeled")
+        }
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise DatasetError(f"the stored roles are not lists of episode ids ({err})") from None
     empty = [role for role, ids in roles.items() if ids.numel() == 0]
     if empty:
         raise DatasetError(f"the stored role {empty[0]!r} has no episode")
+    for role, ids in roles.items():
+        if ids.ndim != 1 or bool(((ids < 0) | (ids >= n_episodes)).any()):
+            raise DatasetError(
+                f"the stored role {role!r} names episodes outside the dataset's {n_episodes} (ids "
+                f"{ids.reshape(-1)[:5].tolist()}...); the roles belong to another file"
+            )
     return roles
 
 
@@ -186,11 +196,18 @@ def _base_roles(
     scheme = cfg["scheme"]
     n_unlabeled = cfg.get("n_unlabeled")
     if scheme == "stored":
-        return _stored_roles(metadata)
+        return _stored_roles(metadata, int(episodes["episode"].max()) + 1)
     if scheme == "controlled":
         try:
+            pools = segment_pools(dict(metadata))
+        except ValueError as err:
+            raise DatasetError(
+                f"{cfg['source']}: dataset.scheme=controlled needs the typed pools of a collected file ({err}); "
+                "use scheme=ilsp"
+            ) from None
+        try:
             return controlled_mix(
-                segment_pools(dict(metadata)),
+                pools,
                 n_safe=int(cfg["n_safe"]),
                 performance=float(cfg["performance"]),
                 n_performant=int(cfg["n_performant"]),

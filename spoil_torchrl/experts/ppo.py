@@ -87,6 +87,25 @@ class PPOConfig:
                 f"ppo.minibatch_size = {self.minibatch_size} is larger than ppo.frames_per_batch = "
                 f"{self.frames_per_batch}"
             )
+        if not isinstance(self.lagrangian, bool):  # Hydra keeps "no" as a string, and a string is true
+            raise ValueError(f"ppo.lagrangian = {self.lagrangian!r}: expected true or false")
+        for name in (
+            "gamma",
+            "gae_lambda",
+            "clip_epsilon",
+            "actor_lr",
+            "critic_lr",
+            "max_grad_norm",
+            "lagrange_lr",
+        ):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+                or value <= 0
+            ):
+                raise ValueError(f"ppo.{name} = {value!r}: expected a finite number > 0")
         if not isinstance(self.record_episodes, int) or self.record_episodes < 0:
             raise ValueError(f"ppo.record_episodes = {self.record_episodes!r}: expected an integer >= 0")
         self.hidden_cells = tuple(self.hidden_cells)

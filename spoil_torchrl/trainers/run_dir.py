@@ -29,6 +29,8 @@ from spoil_torchrl.files import write_atomic
 
 #: The lock file a running run keeps in its directory.
 LOCK_NAME = "run.lock"
+#: Its content, a JSON record padded with spaces to this size (rewritten in place as a heartbeat).
+LOCK_RECORD_BYTES = 1024
 #: The training-state checkpoint a run resumes from (relative to the run directory).
 CHECKPOINT_NAME = "checkpoints/training_state.pt"
 #: The ``resume`` settings: start only in an empty directory / continue a run / continue if possible.
@@ -74,6 +76,22 @@ def _alive(lock: dict) -> bool | None:
     return started is None or _process_start(pid) in (None, started)
 
 
+def _flocked(run_dir: Path) -> bool:
+    """Whether some process holds the flock of ``run_dir``'s lock file (this host, or a file system that
+    shares flocks)."""
+    try:
+        fd = os.open(Path(run_dir) / LOCK_NAME, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
 def read_lock(run_dir: str | os.PathLike) -> dict | None:
     """The lock of ``run_dir`` (``None`` if there is none or it cannot be read)."""
     try:
@@ -91,7 +109,7 @@ def _read_results(run_dir: Path) -> dict | None:
     return results if isinstance(results, dict) else None
 
 
-def run_status(run_dir: str | os.PathLike, results: dict | None = None) -> str:
+def run_status(run_dir: str | os.PathLike, results: dict | None = None, *, _probe_flock: bool = True) -> str:
     """The run's state: its ``results.json`` status (``"finished"``, ``"failed"``, ``"interrupted"``, ...),
     except that a run still marked ``"pre-training"`` / ``"training"`` whose process is gone is ``"killed"``
     (``"running on <host>"`` when it ran on another host); ``"missing"`` without a readable ``results.json``.
@@ -104,6 +122,8 @@ def run_status(run_dir: str | os.PathLike, results: dict | None = None) -> str:
     if status not in ("pre-training", "training"):
         return status
     lock = read_lock(run_dir)
+    if lock is None and _probe_flock and _flocked(run_dir):  # a claim in progress: its owner is alive
+        return status
     alive = None if lock is None else _alive(lock)
     if lock is None or alive is False:
         return "killed"
@@ -223,7 +243,8 @@ def _check_claim(run_dir: Path, resume: bool | str) -> bool:
         )
     results = _read_results(run_dir)
     checkpoint = (run_dir / CHECKPOINT_NAME).is_file()
-    status = run_status(run_dir, results) if results is not None else None
+    # (this process holds the flock now: the lock's content alone says whether its last owner lives)
+    status = run_status(run_dir, results, _probe_flock=False) if results is not None else None
     if resume is False and (results is not None or (run_dir / "results.json").exists()):
         raise RunDirError(
             f"{run_dir} already holds a run (status {status}). Continue it with resume=true (and the same "
@@ -235,7 +256,8 @@ def _check_claim(run_dir: Path, resume: bool | str) -> bool:
     if resume is True and not checkpoint:
         raise RunDirError(
             f"resume=true, but {run_dir} has no checkpoint ({CHECKPOINT_NAME}: it is written at every "
-            "evaluation with train.checkpoint=true); start afresh with resume=auto or in a new directory"
+            "evaluation with train.checkpoint=true, and every ppo.checkpoint_every batches of an expert's training); "
+            "start afresh with resume=auto or in a new directory"
         )
     return bool(resume) and checkpoint
 
@@ -255,8 +277,8 @@ def write_lock(run_dir: str | os.PathLike, fd: int | None = None) -> None:
     if fd is None:  # not claimed by this process (a caller refreshing a lock it does not hold)
         write_atomic(Path(run_dir) / LOCK_NAME, json.dumps(lock))
         return
-    data = json.dumps(lock).encode()
-    os.ftruncate(fd, 0)
+    # one write of a fixed size, never a truncation: a reader sees the old record or the new one
+    data = json.dumps(lock).encode().ljust(LOCK_RECORD_BYTES)
     os.pwrite(fd, data, 0)
 
 

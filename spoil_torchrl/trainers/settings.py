@@ -112,7 +112,7 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
 
 #: Top-level and nested settings that are switches. Hydra keeps ``no`` / ``off`` / ``0`` as they are typed
 #: (a string, an integer), and a string is always true, so anything but true or false is refused.
-SWITCHES = ("normalize_observations", "progress", "eval.frames")
+SWITCHES = ("normalize_observations", "progress", "force", "eval.frames")
 
 
 def _dotted(cfg: Mapping, name: str) -> tuple[bool, Any]:
