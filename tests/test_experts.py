@@ -151,6 +151,33 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
 
 
 @needs_safety_gymnasium
+def test_sigterm_keeps_the_batch_it_arrived_in_and_resumes_from_it(tmp_path, monkeypatch):
+    from spoil_torchrl.experts import ppo as ppo_module
+    from spoil_torchrl.trainers import offline
+
+    _train(tmp_path / "whole", _tiny_config(checkpoint_every=4))
+    update = ppo_module.ppo_update
+
+    def sigterm_in_batch_two(learner, batch, config, index, cost):
+        update(learner, batch, config, index, cost)
+        if index == 1:  # what stop_on_signals' handler records when SIGTERM arrives
+            monkeypatch.setattr(offline, "_stop_reason", "signal SIGTERM")
+
+    monkeypatch.setattr(ppo_module, "ppo_update", sigterm_in_batch_two)
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        _train(tmp_path / "cut", _tiny_config(checkpoint_every=4))
+    monkeypatch.setattr(offline, "_stop_reason", None)
+    monkeypatch.setattr(ppo_module, "ppo_update", update)
+    assert json.loads((tmp_path / "cut" / "results.json").read_text())["status"] == "interrupted"
+    _train(tmp_path / "cut", _tiny_config(checkpoint_every=4), resume=True)
+    results = json.loads((tmp_path / "cut" / "results.json").read_text())
+    assert results["resumed_at"] == [1000]  # the state of batch 2 (not a checkpoint batch) was kept
+    a = torch.load(tmp_path / "whole" / "ckpt_000002000.pt", weights_only=True)["actor"]
+    b = torch.load(tmp_path / "cut" / "ckpt_000002000.pt", weights_only=True)["actor"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@needs_safety_gymnasium
 def test_resume_refuses_other_settings(tmp_path):
     from spoil_torchrl.trainers.checkpoint import CheckpointError
 
@@ -285,6 +312,16 @@ def test_expert_recipe_killed_with_sigkill_resumes_exactly(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert _without_times(tmp_path / "cut" / "log.jsonl") == _without_times(tmp_path / "whole" / "log.jsonl")
     assert json.loads((tmp_path / "cut" / "results.json").read_text())["resumed_at"] == [2000]
+    term = start(tmp_path / "term")
+    log = tmp_path / "term" / "log.jsonl"
+    while not (log.exists() and len(log.read_text().splitlines()) >= 2):
+        assert term.poll() is None and time.monotonic() < deadline + 240
+        time.sleep(0.01)
+    term.send_signal(signal.SIGTERM)
+    output = term.communicate(timeout=120)[0]
+    assert term.returncode != 0 and "Traceback" not in output, output[-2000:]
+    assert "interrupted; continue with: python recipes/train_experts.py" in output
+    assert json.loads((tmp_path / "term" / "results.json").read_text())["status"] == "interrupted"
     again = start(tmp_path / "cut", "resume=auto")  # a finished run is not trained again
     assert again.wait(timeout=120) == 0 and "finished already" in again.stdout.read()
     again = start(tmp_path / "cut", "resume=true")

@@ -12,7 +12,8 @@ batch whatever the size of the violation; a plain gradient step with episode cos
 Every batch starts from a reset seeded by the run's seed and the batch's index (:func:`batch_seed`), and an
 episode still running when the batch is full is cut there (its last step bootstraps from the critic, like a time
 limit). So a batch depends only on the weights and the random-number state at its start, and a run resumes
-exactly (``resume=True``) from its training state, written atomically every ``checkpoint_every`` batches
+exactly (``resume=True``) from its training state, written atomically every ``checkpoint_every`` batches (and
+after the batch in which SIGTERM arrived, :func:`~spoil_torchrl.trainers.stop_on_signals`)
 (:data:`~spoil_torchrl.trainers.run_dir.CHECKPOINT_NAME`): a resumed run's policies equal an uninterrupted
 run's. The policy checkpoints ``ckpt_<frames>.pt`` (actor weights plus the batch's mean episode return and cost)
 are written at the same batches, so the four policy types of the paper can be picked from them afterwards.
@@ -44,6 +45,7 @@ from spoil_torchrl.files import write_atomic
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from spoil_torchrl.trainers.offline import raise_if_stopped, stop_requested
 from spoil_torchrl.trainers.run_dir import CHECKPOINT_NAME
 from spoil_torchrl.trainers.run_results import write_json
 
@@ -373,7 +375,8 @@ def train_ppo(
             with open(run_dir / "log.jsonl", "a") as f:
                 f.write(json.dumps(line) + "\n")
             results.update(frames=frames, last=line)
-            if (index + 1) % config.checkpoint_every == 0 or last:
+            stopping = stop_requested() is not None  # SIGTERM: keep this batch, then stop
+            if (index + 1) % config.checkpoint_every == 0 or last or stopping:
                 save_checkpoint(
                     run_dir / CHECKPOINT_NAME,
                     {
@@ -390,6 +393,7 @@ def train_ppo(
                 write_json(run_dir / "results.json", results)
             bar.update(batch.numel())
             bar.set_postfix(ret=f"{ep_return:.1f}", cost=f"{ep_cost:.1f}", lam=f"{line['lagrange']:.2f}")
+            raise_if_stopped()
     except KeyboardInterrupt:
         write_json(run_dir / "results.json", dict(results, status="interrupted"))
         raise

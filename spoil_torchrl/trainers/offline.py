@@ -36,7 +36,8 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM,)) -> None:
 
     The handler only records the signal; every :func:`offline_trainer` raises ``KeyboardInterrupt`` at its
     next chunk boundary (at most ``steps_per_batch`` steps later), from its own hook, so the interrupt never
-    lands inside library code and the caller handles it like Ctrl-C. A second signal interrupts at once.
+    lands inside library code and the caller handles it like Ctrl-C; other loops (an expert's training) ask
+    :func:`stop_requested` at their own boundaries. A second signal interrupts at once.
     """
 
     def handler(signum, frame):
@@ -49,7 +50,13 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM,)) -> None:
         signal.signal(signum, handler)
 
 
-def _raise_if_stopped() -> None:
+def stop_requested() -> str | None:
+    """The signal :func:`stop_on_signals` caught (``"signal SIGTERM"``), or ``None``."""
+    return _stop_reason
+
+
+def raise_if_stopped() -> None:
+    """Raise ``KeyboardInterrupt`` if a signal asked the run to stop (see :func:`stop_on_signals`)."""
     if _stop_reason is not None:
         raise KeyboardInterrupt(_stop_reason)
 
@@ -354,7 +361,7 @@ def offline_trainer(
     trainer.progress = StepProgress(total_steps, progress_label, enabled=progress_bar)
     trainer.register_op("post_steps", lambda: trainer.progress.update(trainer.collected_frames))
     trainer.register_op("process_optim_batch", SampleBuffers(sample))
-    trainer.register_op("post_steps", _raise_if_stopped)  # see stop_on_signals
+    trainer.register_op("post_steps", raise_if_stopped)  # see stop_on_signals
 
     def stop_if_diverged(optim_steps: int, losses: TensorDictBase | None) -> None:  # the chunk's mean losses
         for key, value in {} if losses is None else losses.items():
