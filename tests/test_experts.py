@@ -110,11 +110,13 @@ def _without_times(path):
 
 
 @needs_safety_gymnasium
-def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeypatch):
+@pytest.mark.parametrize("normalize", [False, True])
+def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeypatch, normalize):
+    from spoil_torchrl.experts import load_policy
     from spoil_torchrl.experts import ppo as ppo_module
     from spoil_torchrl.experts.replay import read_replay
 
-    _train(tmp_path / "whole", _tiny_config())
+    _train(tmp_path / "whole", _tiny_config(normalize_observations=normalize))
     update = ppo_module.ppo_update
 
     def killed_in_batch_four(learner, batch, config, index, cost):
@@ -124,11 +126,11 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
 
     monkeypatch.setattr(ppo_module, "ppo_update", killed_in_batch_four)
     with pytest.raises(KeyboardInterrupt):
-        _train(tmp_path / "cut", _tiny_config())
+        _train(tmp_path / "cut", _tiny_config(normalize_observations=normalize))
     assert json.loads((tmp_path / "cut" / "results.json").read_text())["status"] == "interrupted"
     assert len(_without_times(tmp_path / "cut" / "log.jsonl")) == 3
     monkeypatch.setattr(ppo_module, "ppo_update", update)
-    _train(tmp_path / "cut", _tiny_config(), resume=True)
+    _train(tmp_path / "cut", _tiny_config(normalize_observations=normalize), resume=True)
 
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     names = sorted(p.name for p in whole.glob("ckpt_*.pt"))
@@ -148,6 +150,11 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
     }
     results = json.loads((cut / "results.json").read_text())
     assert results["status"] == "finished" and results["resumed_at"] == [1000] and results["frames"] == 2000
+    policy, meta = load_policy(cut / names[-1], env_id="SafetyPointCircle1-v0")
+    assert meta["observation_norm"] is normalize
+    if normalize:  # the statistics of the batches before the last one, carried inside the policy
+        norm = policy.module[0].module[0]
+        assert bool((norm.scale > 0).all()) and not torch.equal(norm.loc, torch.zeros_like(norm.loc))
 
 
 @needs_safety_gymnasium
@@ -326,3 +333,14 @@ def test_expert_recipe_killed_with_sigkill_resumes_exactly(tmp_path):
     assert again.wait(timeout=120) == 0 and "finished already" in again.stdout.read()
     again = start(tmp_path / "cut", "resume=true")
     assert again.wait(timeout=120) != 0 and "has finished" in again.stdout.read()
+
+
+def test_running_observation_statistics_equal_the_batch_statistics():
+    from spoil_torchrl.experts.ppo_update import PPOLearner
+
+    learner = PPOLearner(3, 1, PPOConfig(hidden_cells=(4,), normalize_observations=True))
+    x = torch.randn(1000, 3, dtype=torch.float64) * torch.tensor([1.0, 10.0, 0.1]) + 5.0
+    for part in x.split([100, 400, 500]):
+        learner.observe(part.float())
+    assert torch.allclose(learner.obs_mean, x.float().double().mean(0), atol=1e-6)
+    assert torch.allclose(learner.norm.scale, x.float().std(0, unbiased=False) + 1e-3, rtol=1e-4)

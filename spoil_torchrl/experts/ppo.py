@@ -32,17 +32,12 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
-from torchrl.objectives import ClipPPOLoss
-from torchrl.objectives.value import GAE
 from tqdm.auto import tqdm
 
-from spoil_torchrl.divergence import check_finite
+from spoil_torchrl.experts.ppo_update import PPOLearner, ppo_update
 from spoil_torchrl.experts.replay import ReplayRecorder
 from spoil_torchrl.files import write_atomic
-from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from spoil_torchrl.trainers.offline import raise_if_stopped, stop_requested
@@ -56,6 +51,10 @@ class PPOConfig:
 
     ``record_episodes`` > 0 keeps that many of every batch's finished episodes in a trajectory buffer
     (``replay/``, :class:`~spoil_torchrl.experts.replay.ReplayRecorder`): the replay datasets of the paper's F.2.
+    ``normalize_observations`` puts a running standardisation of the observations in front of the actor and
+    both critics (OmniSafe's ``obs_normalize``): the statistics of every batch so far, fixed within a batch
+    (updated after its PPO update, so a batch's log-probabilities are computed with the statistics it was
+    collected with), saved inside the policy (:func:`~spoil_torchrl.modules.with_observation_norm`).
     """
 
     total_frames: int = 1_000_000
@@ -75,6 +74,7 @@ class PPOConfig:
     lagrange_lr: float = 0.035
     lagrange_init: float = 0.0
     checkpoint_every: int = 5  # batches
+    normalize_observations: bool = False
     record_episodes: int = 0
     seed: int = 0
     extra: dict = field(default_factory=dict)
@@ -89,8 +89,9 @@ class PPOConfig:
                 f"ppo.minibatch_size = {self.minibatch_size} is larger than ppo.frames_per_batch = "
                 f"{self.frames_per_batch}"
             )
-        if not isinstance(self.lagrangian, bool):  # Hydra keeps "no" as a string, and a string is true
-            raise ValueError(f"ppo.lagrangian = {self.lagrangian!r}: expected true or false")
+        for name in ("lagrangian", "normalize_observations"):  # Hydra keeps "no" as a string: always true
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"ppo.{name} = {getattr(self, name)!r}: expected true or false")
         for name in (
             "gamma",
             "gae_lambda",
@@ -150,109 +151,6 @@ class EpisodeTracker:
         return float(totals[:, 0].mean()), float(totals[:, 1].mean()), len(finished)
 
 
-class _Learner(nn.Module):
-    """The networks, their optimiser and the Lagrange multiplier: the state a batch's update changes."""
-
-    def __init__(self, observation_dim: int, action_dim: int, config: PPOConfig) -> None:
-        super().__init__()
-        cells = config.hidden_cells
-        self.actor = make_actor(
-            observation_dim, action_dim, hidden_cells=cells, distribution="tanh_normal", return_log_prob=True
-        )
-        self.critic = make_value_network(
-            observation_dim, hidden_cells=cells, out_key="state_value", activation_class=nn.Tanh
-        )
-        self.cost_critic = make_value_network(
-            observation_dim, hidden_cells=cells, out_key="cost_value", activation_class=nn.Tanh
-        )
-        self.reward_gae = GAE(
-            gamma=config.gamma, lmbda=config.gae_lambda, value_network=self.critic, average_gae=False
-        )
-        self.cost_gae = GAE(
-            gamma=config.gamma, lmbda=config.gae_lambda, value_network=self.cost_critic, average_gae=False
-        )
-        self.cost_gae.set_keys(
-            reward="cost", value="cost_value", advantage="cost_advantage", value_target="cost_value_target"
-        )
-        self.loss = ClipPPOLoss(
-            self.actor,
-            self.critic,
-            clip_epsilon=config.clip_epsilon,
-            entropy_coeff=config.entropy_coeff,
-            loss_critic_type="l2",
-            normalize_advantage=False,
-        )
-        self.optim = torch.optim.Adam(
-            [
-                {"params": self.loss.actor_network_params.values(True, True), "lr": config.actor_lr},
-                {"params": self.loss.critic_network_params.values(True, True), "lr": config.critic_lr},
-                {"params": self.cost_critic.parameters(), "lr": config.critic_lr},
-            ]
-        )
-        self.lagrange = nn.Parameter(torch.tensor(float(config.lagrange_init)))
-        self.lagrange_optim = torch.optim.Adam([self.lagrange], lr=config.lagrange_lr)
-
-    def training_state(self) -> dict:
-        return {
-            "networks": self.state_dict(),
-            "optim": self.optim.state_dict(),
-            "lagrange_optim": self.lagrange_optim.state_dict(),
-        }
-
-    def load_training_state(self, state: dict) -> None:
-        self.load_state_dict(state["networks"])
-        self.optim.load_state_dict(state["optim"])
-        self.lagrange_optim.load_state_dict(state["lagrange_optim"])
-
-
-def _check_finite(what: str, value: torch.Tensor, batch: int) -> None:
-    advice = "lower the learning rates (ppo.actor_lr, ppo.critic_lr, ppo.lagrange_lr) or ppo.max_grad_norm"
-    check_finite(what, value.detach(), f"batch {batch}", advice)
-
-
-def ppo_update(learner: _Learner, batch: TensorDict, config: PPOConfig, index: int, cost: float) -> None:
-    """One batch's update: the multiplier's Adam step on the batch's mean episode cost ``cost`` (skipped
-    without a finished episode), the advantages of the penalised objective, then ``epochs`` passes of clipped
-    PPO over minibatches (actor, critic and cost critic each clipped to ``max_grad_norm``)."""
-    with torch.no_grad():
-        learner.reward_gae(batch)
-        learner.cost_gae(batch)
-    if config.lagrangian and not math.isnan(cost):  # no finished episode: no new cost estimate, no step
-        learner.lagrange_optim.zero_grad()
-        (-learner.lagrange * (cost - config.cost_limit)).backward()
-        learner.lagrange_optim.step()
-        with torch.no_grad():
-            learner.lagrange.clamp_(min=0.0)
-    lagrange = float(learner.lagrange.detach())
-    advantage = batch["advantage"]
-    if config.lagrangian:
-        advantage = (advantage - lagrange * batch["cost_advantage"]) / (1.0 + lagrange)
-    batch["advantage"] = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
-    buffer = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(batch.numel()),
-        sampler=SamplerWithoutReplacement(),
-        batch_size=config.minibatch_size,
-    )
-    buffer.extend(batch.reshape(-1))
-    for _ in range(config.epochs):
-        for _ in range(batch.numel() // config.minibatch_size):
-            mb = buffer.sample()
-            terms = learner.loss(mb)
-            cost_pred = learner.cost_critic(mb.select("observation").clone())["cost_value"]
-            cost_loss = (cost_pred - mb["cost_value_target"]).pow(2).mean()
-            total = (
-                terms["loss_objective"] + terms["loss_critic"] + terms.get("loss_entropy", 0.0) + cost_loss
-            )
-            _check_finite("the PPO loss", total, index)
-            learner.optim.zero_grad()
-            total.backward()
-            for group in learner.optim.param_groups:  # actor, critic and cost critic clipped separately
-                nn.utils.clip_grad_norm_(group["params"], config.max_grad_norm)
-            learner.optim.step()
-    for name, param in learner.named_parameters():
-        _check_finite(f"parameter {name}", param, index)
-
-
 def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, index: int) -> TensorDict:
     """Batch ``index``: ``frames_per_batch`` steps of ``actor``'s sampled actions from a reset seeded with
     :func:`batch_seed` (episodes end and reset inside; one still running at the end is cut there)."""
@@ -261,7 +159,7 @@ def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, inde
         return env.rollout(config.frames_per_batch, actor, break_when_any_done=False, tensordict=env.reset())
 
 
-def _resume_state(run_dir: Path, config: PPOConfig, learner: _Learner) -> dict:
+def _resume_state(run_dir: Path, config: PPOConfig, learner: PPOLearner) -> dict:
     """The training state of ``run_dir``, checked against ``config`` and this stack, loaded into ``learner``."""
     state = load_checkpoint(run_dir / CHECKPOINT_NAME)
     old, new = state["config"], json.loads(json.dumps(asdict(config)))
@@ -324,7 +222,7 @@ def train_ppo(
     torch.manual_seed(config.seed)
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    learner = _Learner(observation_dim, action_dim, config)
+    learner = PPOLearner(observation_dim, action_dim, config)
     state = _resume_state(run_dir, config, learner) if resume else None
     log: list[dict] = [] if state is None else list(state["log"])
     first = 0 if state is None else int(state["batches"])
@@ -364,10 +262,18 @@ def train_ppo(
             last = index + 1 == batches
             if (index + 1) % config.checkpoint_every == 0 or last:
                 # the weights that collected this batch, with that batch's episode statistics
-                torch.save({"actor": learner.actor.state_dict(), **line}, run_dir / f"ckpt_{frames:09d}.pt")
+                torch.save(
+                    {
+                        "actor": learner.actor.state_dict(),
+                        "observation_norm": learner.norm is not None,
+                        **line,
+                    },
+                    run_dir / f"ckpt_{frames:09d}.pt",
+                )
             if recorder is not None:
                 recorder.record(batch, index)
             ppo_update(learner, batch, config, index, ep_cost)
+            learner.observe(batch["observation"])  # the next batch's standardisation
             line.update(
                 lagrange=float(learner.lagrange.detach()), seconds=elapsed + time.perf_counter() - start
             )

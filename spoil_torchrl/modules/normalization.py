@@ -103,7 +103,7 @@ def with_observation_norm(actor: ProbabilisticActor, normalizer: ObservationNorm
     return ProbabilisticActor(
         module,
         in_keys=head.in_keys,
-        out_keys=head.out_keys,
+        out_keys=head.dist_sample_keys,  # (the log-probability key, if any, follows from return_log_prob)
         distribution_class=head.distribution_class,
         distribution_kwargs=head.distribution_kwargs,
         return_log_prob=head.return_log_prob,
