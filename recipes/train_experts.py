@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from spoil_torchrl.divergence import TrainingDiverged
 from spoil_torchrl.envs import log_mujoco_warnings, make_env
 from spoil_torchrl.experts import PPOConfig, train_ppo
+from spoil_torchrl.experts.ppo import resumable_state
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import stop_on_signals
 from spoil_torchrl.trainers.checkpoint import CheckpointError
@@ -54,10 +55,12 @@ def main(cfg: DictConfig) -> None:
         if cfg.resume == "auto" and run_status(run_dir) == "finished":  # a re-run sweep skips finished runs
             log.info(f"{run_dir}: finished already; nothing to do")
             return
-        resuming = claim_run_dir(run_dir, resume=cfg.resume)
+        # a resume with other settings is refused inside the claim: nothing is written into the run
+        check = lambda resuming: resuming and resumable_state(run_dir, config)  # noqa: E731
+        resuming = claim_run_dir(run_dir, resume=cfg.resume, check=check)
         if not resuming:
             write_hydra_record(run_dir, cfg)
-    except (SettingsError, RunDirError, UnknownDatasetError, ValueError) as err:
+    except (SettingsError, RunDirError, CheckpointError, UnknownDatasetError, ValueError) as err:
         sys.exit(f"error: {err}")
     torch.set_num_threads(cfg.threads)
     try:

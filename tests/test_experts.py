@@ -329,6 +329,11 @@ def test_expert_recipe_killed_with_sigkill_resumes_exactly(tmp_path):
     assert term.returncode != 0 and "Traceback" not in output, output[-2000:]
     assert "interrupted; continue with: python recipes/train_experts.py" in output
     assert json.loads((tmp_path / "term" / "results.json").read_text())["status"] == "interrupted"
+    files = {p: p.read_bytes() for p in sorted((tmp_path / "term").rglob("*")) if p.is_file()}
+    other = start(tmp_path / "term", "resume=true", "ppo.epochs=3")  # refused: other settings
+    output = other.communicate(timeout=120)[0]
+    assert other.returncode != 0 and "ppo.epochs" in output and "Traceback" not in output, output[-2000:]
+    assert {p: p.read_bytes() for p in sorted((tmp_path / "term").rglob("*")) if p.is_file()} == files
     again = start(tmp_path / "cut", "resume=auto")  # a finished run is not trained again
     assert again.wait(timeout=120) == 0 and "finished already" in again.stdout.read()
     again = start(tmp_path / "cut", "resume=true")
@@ -344,3 +349,16 @@ def test_running_observation_statistics_equal_the_batch_statistics():
         learner.observe(part.float())
     assert torch.allclose(learner.obs_mean, x.float().double().mean(0), atol=1e-6)
     assert torch.allclose(learner.norm.scale, x.float().std(0, unbiased=False) + 1e-3, rtol=1e-4)
+
+
+def test_an_incomplete_replay_buffer_is_refused(tmp_path):
+    from spoil_torchrl.experts.replay import read_replay
+
+    with pytest.raises(FileNotFoundError, match="no recorded batch"):
+        read_replay(tmp_path)
+    empty = {k: torch.zeros(0) for k in ("observations", "actions", "next_observations", "rewards", "costs")}
+    empty |= {"terminals": torch.zeros(0, dtype=torch.bool), "timeouts": torch.zeros(0, dtype=torch.bool)}
+    for index in (0, 1, 3):
+        torch.save({**empty, "batch": index}, tmp_path / f"batch_{index:06d}.pt")
+    with pytest.raises(ValueError, match="1 of 4 batches are missing \\(first 2\\)"):
+        read_replay(tmp_path)

@@ -159,8 +159,11 @@ def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, inde
         return env.rollout(config.frames_per_batch, actor, break_when_any_done=False, tensordict=env.reset())
 
 
-def _resume_state(run_dir: Path, config: PPOConfig, learner: PPOLearner) -> dict:
-    """The training state of ``run_dir``, checked against ``config`` and this stack, loaded into ``learner``."""
+def resumable_state(run_dir: str | Path, config: PPOConfig) -> dict:
+    """The training state of ``run_dir``, refused (:class:`CheckpointError`) unless it was made with ``config``
+    on this software stack: what ``resume=true`` continues from. The expert recipe calls it inside its claim of
+    the run directory, so a refused resume writes nothing there."""
+    run_dir = Path(run_dir)
     state = load_checkpoint(run_dir / CHECKPOINT_NAME)
     old, new = state["config"], json.loads(json.dumps(asdict(config)))
     differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
@@ -175,8 +178,6 @@ def _resume_state(run_dir: Path, config: PPOConfig, learner: PPOLearner) -> dict
             f"{run_dir}: trained on another software stack ({stack_label(state['stack'])}: "
             f"{', '.join(differences)}); resume it on its own stack or start a new run"
         )
-    learner.load_training_state(state["learner"])
-    torch.set_rng_state(state["rng"])
     return state
 
 
@@ -223,7 +224,10 @@ def train_ppo(
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     learner = PPOLearner(observation_dim, action_dim, config)
-    state = _resume_state(run_dir, config, learner) if resume else None
+    state = resumable_state(run_dir, config) if resume else None
+    if state is not None:
+        learner.load_training_state(state["learner"])
+        torch.set_rng_state(state["rng"])
     log: list[dict] = [] if state is None else list(state["log"])
     first = 0 if state is None else int(state["batches"])
     results = {"status": "training", "config": asdict(config), "stack": current_stack(), "frames": 0}

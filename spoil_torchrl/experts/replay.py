@@ -83,6 +83,13 @@ def read_replay(directory: str | os.PathLike) -> dict[str, np.ndarray]:
         raise FileNotFoundError(
             f"{directory}: no recorded batch (batch_<index>.pt); train with ppo.record_episodes > 0"
         )
+    indices = [int(path.stem.split("_")[1]) for path in files]
+    missing = sorted(set(range(indices[-1] + 1)) - set(indices))
+    if missing:  # e.g. a training resumed on a machine without the earlier batches' files
+        raise ValueError(
+            f"{directory}: the buffer is incomplete: {len(missing)} of {indices[-1] + 1} batches are missing "
+            f"(first {missing[0]}); a replay dataset needs the whole training's buffer"
+        )
     parts: dict[str, list[np.ndarray]] = {name: [] for name in [*REPLAY_FIELDS, "batch"]}
     for path in files:
         stored = torch.load(path, weights_only=True)

@@ -48,7 +48,7 @@ def minari_home(tmp_path, monkeypatch):
 def dsrl_file(tmp_path):
     rng = np.random.default_rng(0)
     n = sum(LENGTHS)
-    arrays = make_arrays(LENGTHS, ENDS, rewards=rng.normal(size=n), costs=rng.integers(0, 3, n))
+    arrays = make_arrays(LENGTHS, ENDS, obs_dim=28, rewards=rng.normal(size=n), costs=rng.integers(0, 3, n))
     arrays["observations"] = arrays["observations"] + rng.normal(size=arrays["observations"].shape)
     arrays["next_observations"] = np.concatenate(
         [arrays["observations"][1:], arrays["observations"][-1:] + 1]
@@ -72,7 +72,7 @@ def test_round_trip_gives_identical_episodes_and_metadata(dsrl_file):
     assert meta["roles"] == {name: ids.tolist() for name, ids in roles.items()}
     # what other tools see: Minari's layout, the cost in infos (DataCollector layout), the episode metadata
     episode = minari.load_dataset("test/tiny-v0")[2]
-    assert episode.observations.shape == (LENGTHS[2] + 1, 4) and episode.rewards.shape == (LENGTHS[2],)
+    assert episode.observations.shape == (LENGTHS[2] + 1, 28) and episode.rewards.shape == (LENGTHS[2],)
     assert episode.infos["cost"][0] == 0 and np.array_equal(
         episode.infos["cost"][1:], ours["next", "cost"][ours["episode"] == 2].reshape(-1).numpy()
     )
