@@ -142,6 +142,11 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
             assert torch.equal(a["actor"][key], b["actor"][key]), (name, key)
     assert _without_times(cut / "log.jsonl") == _without_times(whole / "log.jsonl")  # every batch once
     replay_a, replay_b = read_replay(whole / "replay"), read_replay(cut / "replay")
+    from spoil_torchrl.data.episodes import episodes_from_arrays
+    from spoil_torchrl.data.labeling import replay_statistics
+
+    table_h = replay_statistics(episodes_from_arrays(replay_a), 25.0, safe_optimal_return=40.0)
+    assert table_h["trajectories"] == 4  # one recorded episode per batch
     assert all((replay_a[k] == replay_b[k]).all() for k in replay_a) and set(replay_a["batch"]) == {
         0,
         1,

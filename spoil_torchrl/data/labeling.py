@@ -231,3 +231,28 @@ def replay_subsets(
         "performant": (stats["return"] >= return_fraction * safe_optimal_return).nonzero().squeeze(-1),
         "unlabeled": torch.arange(stats.shape[0]),
     }
+
+
+def replay_statistics(
+    data: TensorDict, cost_threshold: float, safe_optimal_return: float, return_fraction: float = 0.9
+) -> dict[str, float]:
+    """The paper's Table H for a replay buffer: the shares of its trajectories that are safe (cost within the
+    bound), performant (return above ``return_fraction`` of the safe-optimal return) and both, and their
+    number (the subsets of :func:`replay_subsets`).
+
+    Examples:
+        >>> stats = TensorDict({"return": torch.tensor([1.0, 9.5, 10.0, 2.0]), "cost": torch.tensor([0.0, 50, 1, 0])}, [4])
+        >>> replay_statistics(stats, 5.0, safe_optimal_return=10.0)
+        {'safe_ratio': 0.75, 'performant_ratio': 0.5, 'safe_performant_ratio': 0.25, 'trajectories': 4}
+    """
+    subsets = replay_subsets(data, cost_threshold, safe_optimal_return, return_fraction)
+    n = int(subsets["unlabeled"].numel())
+    if n == 0:
+        raise ValueError("the replay buffer holds no trajectory")
+    both = int(torch.isin(subsets["safe"], subsets["performant"]).sum())
+    return {
+        "safe_ratio": subsets["safe"].numel() / n,
+        "performant_ratio": subsets["performant"].numel() / n,
+        "safe_performant_ratio": both / n,
+        "trajectories": n,
+    }
