@@ -32,12 +32,9 @@ seed writes a single-seed run's files, with its settings, into ``seed<k>/`` of t
 from __future__ import annotations
 
 import contextlib
-import errno
 import hashlib
 import logging
 import math
-import os
-import sys
 import time
 from pathlib import Path
 
@@ -53,16 +50,14 @@ from spoil_torchrl.data import (
     segment_pools,
     standardize_observations,
 )
-from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.data.prepare import prepare_dataset
-from spoil_torchrl.divergence import TrainingDiverged
 from spoil_torchrl.envs import log_mujoco_warnings
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.eval.evaluator import METRICS
 from spoil_torchrl.stack import current_stack
-from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
+from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers import CompiledStepper, offline_trainer, stop_on_signals
 from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
 from spoil_torchrl.trainers.checkpoint import (
@@ -71,6 +66,7 @@ from spoil_torchrl.trainers.checkpoint import (
     rng_state,
     set_rng_state,
 )
+from spoil_torchrl.trainers.outcome import ended_in_one_line
 from spoil_torchrl.trainers.precision import matmul_precision
 from spoil_torchrl.trainers.resume import check_resumable, pretraining_fingerprint, trim_csv_logs
 from spoil_torchrl.trainers.run_dir import (
@@ -78,7 +74,6 @@ from spoil_torchrl.trainers.run_dir import (
     RunDirError,
     claim_run_dir,
     release_run_dir,
-    resume_command,
     write_hydra_record,
 )
 from spoil_torchrl.trainers.run_results import settings_yaml, summary_table, write_json
@@ -426,15 +421,6 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
     return [finish(seed_run, update_step, t0) for seed_run, t0 in zip(runs, starts, strict=True)]
 
 
-#: Errors that are the user's to fix (a setting, a file, a run directory): one message, no traceback
-#: (``HYDRA_FULL_ERROR=1`` shows it).
-USER_ERRORS = (SettingsError, RunDirError, CheckpointError, DatasetError, UnknownDatasetError)
-
-
-#: OS errors of a place that cannot take more writes (a full disk, a quota, a file-size limit, read-only).
-DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES)
-
-
 @hydra.main(config_path="../configs", config_name="spoildice_dsrl", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     stop_on_signals()  # SIGTERM ends the run like Ctrl-C: marked "interrupted", its checkpoint intact
@@ -442,32 +428,8 @@ def main(cfg: DictConfig) -> None:
     log_mujoco_warnings()  # into the run's log, not MUJOCO_LOG.TXT in the working directory
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     name_dataset_by_source(cfg, HydraConfig.get().overrides.task)  # runs of another file get its name
-    try:
+    with ended_in_one_line("recipes/spoildice_dsrl.py", run_dir):  # a user's error, divergence, Ctrl-C
         results = run(cfg, run_dir)
-    except USER_ERRORS as err:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            raise
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-    except TrainingDiverged as err:  # marked "failed" in results.json; the report leaves it out
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            raise
-        print(f"failed: {err}", file=sys.stderr)
-        sys.exit(1)
-    except OSError as err:  # a full disk, a quota, a folder made read-only: marked "failed", one line
-        if os.environ.get("HYDRA_FULL_ERROR") == "1" or err.errno not in DISK_ERRORS:
-            raise
-        where = err.filename or f"into {run_dir}"
-        print(f"error: cannot write {where}: {err.strerror}; the run is marked failed", file=sys.stderr)
-        sys.exit(1)
-    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: marked "interrupted", its last checkpoint intact
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            raise
-        print(
-            f"interrupted; continue with: {resume_command('recipes/spoildice_dsrl.py', run_dir)}",
-            file=sys.stderr,
-        )
-        sys.exit(130)
     for one in results if isinstance(results, list) else [results]:
         log.info(summary_table(one))
         if "dice_report" in one:

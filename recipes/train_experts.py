@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import os
 import sys
 from pathlib import Path
 
@@ -23,18 +22,17 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from spoil_torchrl.divergence import TrainingDiverged
 from spoil_torchrl.envs import log_mujoco_warnings, make_env
 from spoil_torchrl.experts import PPOConfig, train_ppo
 from spoil_torchrl.experts.ppo import resumable_state
 from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
 from spoil_torchrl.trainers import stop_on_signals
 from spoil_torchrl.trainers.checkpoint import CheckpointError
+from spoil_torchrl.trainers.outcome import ended_in_one_line
 from spoil_torchrl.trainers.run_dir import (
     RunDirError,
     claim_run_dir,
     release_run_dir,
-    resume_command,
     run_status,
     write_hydra_record,
 )
@@ -64,21 +62,16 @@ def main(cfg: DictConfig) -> None:
         sys.exit(f"error: {err}")
     torch.set_num_threads(cfg.threads)
     try:
-        history = train_ppo(
-            functools.partial(make_env, task.env_id),
-            task.observation_dim,
-            task.action_dim,
-            config,
-            run_dir,
-            progress=cfg.progress,
-            resume=resuming,
-        )
-    except (CheckpointError, TrainingDiverged) as err:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            raise
-        sys.exit(f"error: {err}")
-    except KeyboardInterrupt:
-        sys.exit(f"interrupted; continue with: {resume_command('recipes/train_experts.py', run_dir)}")
+        with ended_in_one_line("recipes/train_experts.py", run_dir):  # divergence, a full disk, Ctrl-C
+            history = train_ppo(
+                functools.partial(make_env, task.env_id),
+                task.observation_dim,
+                task.action_dim,
+                config,
+                run_dir,
+                progress=cfg.progress,
+                resume=resuming,
+            )
     finally:
         release_run_dir(run_dir)
     last = history[-1]

@@ -306,15 +306,6 @@ def write_hydra_record(run_dir: str | os.PathLike, cfg) -> None:
     write_atomic(folder / "overrides.yaml", OmegaConf.to_yaml(list(hydra_cfg.overrides.task)))
 
 
-def resume_command(recipe: str, run_dir: str | os.PathLike) -> str:
-    """The command that continues the interrupted run of this Hydra job in ``run_dir`` (its own overrides,
-    ``hydra.run.dir`` and ``resume=true``)."""
-    from hydra.core.hydra_config import HydraConfig
-
-    kept = [o for o in HydraConfig.get().overrides.task if not o.startswith(("hydra.run.dir=", "resume="))]
-    return " ".join(["python", recipe, *kept, f"hydra.run.dir={run_dir}", "resume=true"])
-
-
 def unusable_run_dir(run_dir: str | os.PathLike) -> str | None:
     """Why ``run_dir`` cannot be a run directory (a file is there, it cannot be created, or it is not
     writable), or ``None``; a missing directory is created (as Hydra would), an existing one is left as it is.
