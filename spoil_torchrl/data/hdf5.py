@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from tensordict import MemoryMappedTensor, TensorDict
 
-from spoil_torchrl.data.episodes import DSRL_KEYS, DatasetError, episodes_from_arrays
+from spoil_torchrl.data.episodes import DSRL_KEYS, DatasetError, _first_non_finite_row, episodes_from_arrays
 
 #: HDF5 attribute holding the JSON metadata of files written by this project.
 METADATA_ATTR = "spoil_torchrl_metadata"
@@ -31,12 +31,8 @@ def _open(path: Path) -> h5py.File:
     if path.is_symlink():
         try:
             path.resolve(strict=True)
-        except RuntimeError:  # Python < 3.13 says "Symlink loop"
-            raise DatasetError(
-                f"{path}: a symlink loop (the link leads back to itself); fix the link"
-            ) from None
-        except OSError as err:
-            if err.errno == errno.ELOOP:
+        except (RuntimeError, OSError) as err:  # Python < 3.13 raises RuntimeError for a loop
+            if isinstance(err, RuntimeError) or err.errno == errno.ELOOP:
                 raise DatasetError(
                     f"{path}: a symlink loop (the link leads back to itself); fix the link"
                 ) from None
@@ -64,20 +60,17 @@ def _open(path: Path) -> h5py.File:
 
 def _refuse_float32_overflow(dset: h5py.Dataset, target: np.ndarray, path: Path, key: str) -> None:
     """A float64 value beyond float32's range became infinite when read as float32: say so (the file itself
-    holds no infinity). Checked in row chunks, like the non-finite check of the arrays."""
-    rows = 1 << 16
-    for start in range(0, target.shape[0], rows):
-        inf = np.isinf(target[start : start + rows])
-        if inf.any():
-            row = start + int(inf.reshape(inf.shape[0], -1).any(-1).nonzero()[0][0])
-            original = np.asarray(dset[row], dtype=np.float64)
-            if np.isfinite(original).all():
-                value = original.reshape(-1)[np.isinf(np.asarray(target[row]).reshape(-1))][0]
-                raise DatasetError(
-                    f"{path}: '{key}' holds {value:.3g} at row {row}, beyond the float32 range (±3.4e38) in "
-                    "which the data are trained on; rescale that column"
-                )
-            return
+    holds no infinity). The first non-finite row is found as the arrays' own check finds it."""
+    row = _first_non_finite_row(torch.from_numpy(target))
+    if row < 0:
+        return
+    original = np.asarray(dset[row], dtype=np.float64)
+    if np.isfinite(original).all():  # else the file holds NaN / inf itself, which validation reports
+        value = original.reshape(-1)[~np.isfinite(np.asarray(target[row]).reshape(-1))][0]
+        raise DatasetError(
+            f"{path}: '{key}' holds {value:.3g} at row {row}, beyond the float32 range (±3.4e38) in "
+            "which the data are trained on; rescale that column"
+        )
 
 
 def _read(dset: h5py.Dataset, path: Path, key: str, memmap_dir: Path | None) -> np.ndarray | torch.Tensor:

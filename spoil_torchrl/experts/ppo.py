@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torch import nn
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
@@ -38,9 +39,10 @@ from tqdm.auto import tqdm
 from spoil_torchrl.experts.ppo_update import PPOLearner, ppo_update
 from spoil_torchrl.experts.replay import ReplayRecorder
 from spoil_torchrl.files import write_atomic
-from spoil_torchrl.stack import current_stack, stack_differences, stack_label
-from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from spoil_torchrl.stack import current_stack
+from spoil_torchrl.trainers.checkpoint import load_checkpoint, save_checkpoint
 from spoil_torchrl.trainers.offline import raise_if_stopped, stop_requested
+from spoil_torchrl.trainers.resume import check_resumable
 from spoil_torchrl.trainers.run_dir import CHECKPOINT_NAME
 from spoil_torchrl.trainers.run_results import write_json
 
@@ -160,24 +162,16 @@ def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, inde
 
 
 def resumable_state(run_dir: str | Path, config: PPOConfig) -> dict:
-    """The training state of ``run_dir``, refused (:class:`CheckpointError`) unless it was made with ``config``
-    on this software stack: what ``resume=true`` continues from. The expert recipe calls it inside its claim of
-    the run directory, so a refused resume writes nothing there."""
+    """The training state of ``run_dir``, refused
+    (:class:`~spoil_torchrl.trainers.checkpoint.CheckpointError`) unless it was made with ``config`` on this
+    software stack (:func:`~spoil_torchrl.trainers.resume.check_resumable`, as for the main recipe's runs):
+    what ``resume=true`` continues from. The expert recipe calls it inside its claim of the run directory, so a
+    refused resume writes nothing there."""
     run_dir = Path(run_dir)
     state = load_checkpoint(run_dir / CHECKPOINT_NAME)
-    old, new = state["config"], json.loads(json.dumps(asdict(config)))
-    differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
-    if differ:
-        raise CheckpointError(
-            f"{run_dir}: resume=true with other settings than the run's ({', '.join('ppo.' + k for k in differ)});"
-            " resume with the run's own settings (its config.json) or start a new run"
-        )
-    differences = stack_differences(state["stack"])
-    if differences:
-        raise CheckpointError(
-            f"{run_dir}: trained on another software stack ({stack_label(state['stack'])}: "
-            f"{', '.join(differences)}); resume it on its own stack or start a new run"
-        )
+    as_yaml = lambda settings: OmegaConf.to_yaml({"ppo": json.loads(json.dumps(settings))})  # noqa: E731
+    recorded = {"config_yaml": as_yaml(state["config"]), "results": {"stack": state["stack"]}}
+    check_resumable(recorded, as_yaml(asdict(config)), run_dir, settings_file="config.json")
     return state
 
 

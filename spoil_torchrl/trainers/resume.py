@@ -78,7 +78,9 @@ def settings_differ(
     return [k for k in keys if old.get(k) != new.get(k) and k.split(".")[0] not in allowed]
 
 
-def check_resumable(state: Mapping, config_yaml: str, run_dir: str | os.PathLike) -> None:
+def check_resumable(
+    state: Mapping, config_yaml: str, run_dir: str | os.PathLike, *, settings_file: str = "config.yaml"
+) -> None:
     """Refuse (``CheckpointError``) to resume from a checkpoint ``state`` with other settings than
     ``config_yaml`` (:func:`settings_differ`) or on another software stack than the run's (its
     ``results.json``'s ``stack``, :mod:`spoil_torchrl.stack`: the simulator's physics differ). A run made before
@@ -95,7 +97,7 @@ def check_resumable(state: Mapping, config_yaml: str, run_dir: str | os.PathLike
     if differ:
         raise CheckpointError(
             f"{run_dir}: resume=true with other settings than the run's ({', '.join(differ)}); resume "
-            "with the run's own settings (its config.yaml) or start a new run"
+            f"with the run's own settings (its {settings_file}) or start a new run"
         )
     recorded = state.get("results", {}).get("stack")
     differences = [] if recorded is None else stack_differences(recorded)
