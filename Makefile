@@ -17,7 +17,7 @@ else
 $(error STACK=$(STACK): the stacks are default and legacy)
 endif
 # Extras installed by the set-up; EXTRAS=dev skips the simulators (their tests then skip).
-EXTRAS ?= dev,$(STACK_EXTRAS),launchers,tensorboard,wandb
+EXTRAS ?= dev,$(STACK_EXTRAS),launchers,tensorboard,wandb,report
 SAFETY_GYMNASIUM ?= safety-gymnasium==1.0.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.spoil_torchrl-installed

@@ -1,6 +1,12 @@
 """Collect finished runs of ``recipes/spoildice_dsrl.py`` into a Table-1-style markdown table and a trade-off plot.
 
     python recipes/report.py runs/final --out docs/results.md --plot docs/tradeoff.png --curves docs/curves.png
+    python recipes/report.py --figure docs/results/fig4c --out docs/experiments/fig4c.md --plot docs/experiments/fig4c.png
+
+``--figure`` reads the cells of a paper experiment (``experiment=...``) instead: per level and method the mean ±
+s.e. over seeds, averaged over the tasks present and per task, the aggregate statistics
+(:func:`spoil_torchrl.eval.experiments.experiment_statistics`) and the figure
+(:func:`spoil_torchrl.eval.figures.plot_levels`).
 
 Every ``results.json`` under the given folders with ``status == "finished"`` counts. Per dataset and algorithm,
 each seed contributes its aggregate (the mean of its last evaluations, as the paper does); the table gives the
@@ -247,6 +253,15 @@ def main() -> None:
     parser.add_argument(
         "--latest", action="store_true", help="a seed run more than once counts with its newest run"
     )
+    parser.add_argument(
+        "--figure",
+        action="store_true",
+        help="the folders hold the cells of a paper experiment (experiment=...): its per-level tables, "
+        "aggregate statistics (--out) and figure (--plot)",
+    )
+    parser.add_argument(
+        "--experiment", help="with --figure: the experiment to report, when several are found"
+    )
     args = parser.parse_args()
     for flag, path in (("--out", args.out), ("--plot", args.plot), ("--curves", args.curves)):
         if path is not None and path.is_dir():
@@ -254,6 +269,10 @@ def main() -> None:
         if flag != "--out" and path is not None and path.suffix.lower() not in (".png", ".pdf", ".svg"):
             # matplotlib would add an extension and write a file that was not named
             parser.error(f"{flag} {path}: give a file name ending in .png, .pdf or .svg")
+    if args.figure:
+        return figure_report(parser, args)
+    if args.experiment:
+        parser.error("--experiment needs --figure")
     skipped: list[tuple[Path, str]] = []
     try:
         runs = load_runs(args.folders, latest=args.latest, skipped=skipped)
@@ -278,6 +297,45 @@ def main() -> None:
             seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
             plot_learning_curves(learning_curves(runs), args.curves, seeds=seeds)
     except OSError as err:  # an unwritable place: one line
+        raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
+
+
+def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--figure``: a paper experiment's tables and statistics (printed, and into ``--out``) and figure."""
+    from spoil_torchrl.eval.experiments import (
+        experiment_markdown,
+        experiment_statistics,
+        figure_panels,
+        load_experiment,
+    )
+    from spoil_torchrl.eval.figures import plot_levels
+
+    if args.curves or args.latest:
+        parser.error("--curves and --latest are not available with --figure")
+    skipped: list[tuple[Path, str]] = []
+    try:
+        experiment = load_experiment(args.folders, name=args.experiment, skipped=skipped)
+    except (FileNotFoundError, ValueError) as error:
+        for path, reason in skipped:
+            print(f"skipped {path.parent}: {reason}", file=sys.stderr)
+        raise SystemExit(f"error: {error}") from None
+    for path, reason in skipped:
+        print(f"skipped {path.parent}: {reason}", file=sys.stderr)
+    try:
+        statistics = experiment_statistics(experiment)
+    except ImportError as err:  # rliable is an extra
+        statistics = f"(aggregate statistics left out: {err})"
+    text = experiment_markdown(experiment) + "\n\n" + statistics
+    print(text)
+    try:
+        if args.out:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(text + "\n")
+        if args.plot:
+            if experiment.level is None:
+                raise SystemExit(f"error: {experiment.name} has one configuration: a table, not a figure")
+            plot_levels(figure_panels(experiment), experiment.levels, args.plot, level_name=experiment.level)
+    except OSError as err:
         raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
 
 

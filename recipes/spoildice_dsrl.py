@@ -66,9 +66,14 @@ from spoil_torchrl.trainers.checkpoint import (
     rng_state,
     set_rng_state,
 )
-from spoil_torchrl.trainers.outcome import ended_in_one_line
+from spoil_torchrl.trainers.outcome import ended_in_one_line, is_sweep_job
 from spoil_torchrl.trainers.precision import matmul_precision
-from spoil_torchrl.trainers.resume import check_resumable, pretraining_fingerprint, trim_csv_logs
+from spoil_torchrl.trainers.resume import (
+    check_resumable,
+    finished_already,
+    pretraining_fingerprint,
+    trim_csv_logs,
+)
 from spoil_torchrl.trainers.run_dir import (
     CHECKPOINT_NAME,
     RunDirError,
@@ -76,7 +81,7 @@ from spoil_torchrl.trainers.run_dir import (
     release_run_dir,
     write_hydra_record,
 )
-from spoil_torchrl.trainers.run_results import settings_yaml, summary_table, write_json
+from spoil_torchrl.trainers.run_results import experiment_cell, settings_yaml, summary_table, write_json
 from spoil_torchrl.trainers.seed_run import (
     SeedRun,
     common_checkpoints,
@@ -101,7 +106,8 @@ log = logging.getLogger(__name__)
 
 def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
     """Train and evaluate as configured (or continue the run in ``run_dir``, ``resume=true``); returns the
-    content of ``results.json`` (one per seed, in ``seed<k>/``, for ``seeds=[...]``)."""
+    content of ``results.json`` (one per seed, in ``seed<k>/``, for ``seeds=[...]``), or ``[]`` when
+    ``resume=auto`` finds the run finished with these settings."""
     start = time.perf_counter()
     check_settings(OmegaConf.to_container(cfg, resolve=True))  # before any data loading or training
     check_logger_available(cfg.logger.type)  # a missing tensorboard / wandb fails now, not after pre-training
@@ -109,6 +115,15 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
         raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
     seeds = cfg.get("seeds")
     resume = cfg.get("resume", False)
+    done = [  # resume=auto passes over runs that have finished with these settings (a sweep's finished cells)
+        finished_already(
+            run_dir / f"seed{s}" if seeds else run_dir, settings_yaml(seed_settings(cfg, s)), resume
+        )
+        for s in (seeds or [cfg.seed])
+    ]
+    if all(done):  # said on the console only: the finished run's files stay as they are
+        print(f"{run_dir}: finished already; nothing to do (resume=auto)")
+        return []
 
     # never starts over a run (a seeds=[...] run keeps its runs in seed<k>/, each claimed on its own)
     def same_settings(resuming: bool) -> None:  # a refused resume writes nothing into the run directory
@@ -203,6 +218,8 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
             "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)
             "evaluations": [],
         }
+        if experiment_cell(cfg) is not None:  # the cell of a paper experiment's sweep (its figure reads it)
+            results["experiment"] = experiment_cell(cfg)
         if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
             results["tracking"] = tracking
     write_json(run_dir / "results.json", results)
@@ -428,8 +445,12 @@ def main(cfg: DictConfig) -> None:
     log_mujoco_warnings()  # into the run's log, not MUJOCO_LOG.TXT in the working directory
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     name_dataset_by_source(cfg, HydraConfig.get().overrides.task)  # runs of another file get its name
-    with ended_in_one_line("recipes/spoildice_dsrl.py", run_dir):  # a user's error, divergence, Ctrl-C
+    # a user's error, divergence, Ctrl-C; a sweep goes on past a diverged cell (recorded as failed)
+    results = []
+    with ended_in_one_line("recipes/spoildice_dsrl.py", run_dir, keep_going=is_sweep_job()):
         results = run(cfg, run_dir)
+    if not results:  # passed over (finished already) or, in a sweep, diverged: said in one line
+        return
     for one in results if isinstance(results, list) else [results]:
         log.info(summary_table(one))
         if "dice_report" in one:

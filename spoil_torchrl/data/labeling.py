@@ -152,6 +152,8 @@ def controlled_mix(
     safeness: float,
     n_unlabeled: int | None = None,
     seed: int = 0,
+    episode_cost: torch.Tensor | None = None,
+    cost_limit: float | None = None,
 ) -> dict[str, torch.Tensor]:
     """Controlled datasets of appendix F.2 from four typed pools of episode ids.
 
@@ -161,11 +163,24 @@ def controlled_mix(
     trajectories). D_S and D_P never share a trajectory. D_U holds ``n_unlabeled`` trajectories drawn equally
     from the four pools (the remainder from the first ones), or every pooled trajectory when ``None``.
 
+    With ``episode_cost`` (indexed by episode id) and ``cost_limit``, D_S and D_P take a safe type's
+    trajectories only among its episodes within the limit and an unsafe type's only among those over it, so
+    that D_S holds safe demonstrations (F.2: ``safe-high`` and ``safe-medium`` are the policies that satisfy
+    the constraint, but a policy that does on average still has episodes over the limit) and ``safeness`` is
+    the share of D_P that is safe. The pools are shuffled as without costs and the ineligible episodes
+    skipped, so a seed whose draw held none selects exactly the same trajectories. D_U still draws from whole
+    pools: it is the unlabeled mix of all four behaviours.
+
     Examples:
         >>> pools = {name: torch.arange(10) + 10 * i for i, name in enumerate(POOLS)}
         >>> mix = controlled_mix(pools, n_safe=4, performance=0.25, n_performant=4, safeness=0.5, seed=0)
         >>> [int((mix["safe"] < 10).sum()), int((mix["performant"] < 10).sum()), len(mix["unlabeled"])]
         [1, 2, 40]
+        >>> cost = torch.zeros(40); cost[[0, 1]] = 99.0  # two safe-high episodes over the limit
+        >>> mix = controlled_mix(pools, n_safe=8, performance=1.0, n_performant=0, safeness=0.0,
+        ...                      episode_cost=cost, cost_limit=25.0)
+        >>> sorted(mix["safe"].tolist())
+        [2, 3, 4, 5, 6, 7, 8, 9]
     """
     missing = [p for p in POOLS if p not in pools]
     if missing:
@@ -175,13 +190,23 @@ def controlled_mix(
     p_high, p_unsafe = _split(n_performant, safeness, "safeness")
     generator = torch.Generator().manual_seed(seed)
 
-    def take(pool: str, k: int, offset: int = 0) -> torch.Tensor:
-        ids = pools[pool]
-        if offset + k > ids.numel():
-            raise ValueError(f"pool {pool!r} has {ids.numel()} trajectories, {offset + k} are needed")
-        return ids[order[pool][offset : offset + k]]
+    if (episode_cost is None) != (cost_limit is None):
+        raise ValueError("controlled_mix takes episode_cost and cost_limit together")
 
-    order = {name: torch.randperm(ids.numel(), generator=generator) for name, ids in pools.items()}
+    def take(pool: str, k: int, offset: int = 0) -> torch.Tensor:
+        ids = order[pool]
+        if offset + k > ids.numel():
+            within = "" if episode_cost is None else (" over" if pool.startswith("unsafe") else " within")
+            limit = "" if episode_cost is None else f"{within} the cost limit {cost_limit}"
+            raise ValueError(f"pool {pool!r} has {ids.numel()} trajectories{limit}, {offset + k} are needed")
+        return ids[offset : offset + k]
+
+    order = {name: ids[torch.randperm(ids.numel(), generator=generator)] for name, ids in pools.items()}
+    if episode_cost is not None:
+        cost = torch.as_tensor(episode_cost)
+        for name in POOLS:
+            over = cost[order[name]] > cost_limit
+            order[name] = order[name][over if name.startswith("unsafe") else ~over]
     safe = torch.cat([take("safe-high", s_high), take("safe-medium", s_medium)])
     performant = torch.cat([take("safe-high", p_high, offset=s_high), take("unsafe-high", p_unsafe)])
     if n_unlabeled is None:

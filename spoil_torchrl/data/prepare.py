@@ -16,13 +16,20 @@ from tensordict import TensorDict
 from spoil_torchrl.data.collect import segment_pools
 from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.generated import ensure_generated
-from spoil_torchrl.data.labeling import controlled_mix, draw, episode_stats, label_ilsp
+from spoil_torchrl.data.labeling import (
+    controlled_mix,
+    corrupt,
+    draw,
+    episode_stats,
+    label_ilsp,
+    replay_subsets,
+)
 from spoil_torchrl.data.load import load_episodes, parse_source, read_source_metadata
 from spoil_torchrl.files import update_digest
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.tasks import ENV_TASKS, get_dsrl_dataset
 
-SCHEMES = ("ilsp", "controlled", "stored")
+SCHEMES = ("ilsp", "controlled", "replay", "stored")
 EXTRA_ROLES = ("nonpreferred",)
 
 
@@ -117,10 +124,18 @@ def select_roles(
       performant episodes (seeded); D_U = every episode, or ``n_unlabeled`` drawn ones. The two draws are
       independent: an episode that is both safe and performant may be in both (F.1's labels overlap).
     * ``"controlled"`` (F.2): :func:`~spoil_torchrl.data.controlled_mix` of the file's policy-type pools with
-      ``performance`` (share of safe-high in D_S) and ``safeness`` (share of safe-high in D_P).
+      ``performance`` (share of safe-high in D_S) and ``safeness`` (share of safe-high in D_P); the safe types'
+      trajectories in D_S and D_P are episodes within ``cost_threshold``, the unsafe types' episodes over it.
+    * ``"replay"`` (F.2, Table K): one trajectory buffer of an expert's training labelled as the paper does
+      (safe iff cost <= threshold; performant iff return >= ``return_fraction`` (0.9) of the safe-optimal
+      return), then drawn as for ``"ilsp"``: ``n_safe`` safe, ``n_performant`` performant, ``n_unlabeled``
+      of all.
     * ``"stored"``: the roles stored with the data (``metadata["roles"]``: episode ids per role, e.g. a Minari
       dataset exported with its roles or labelled by hand with ``role_safe`` / ``role_performant`` /
       ``role_unlabeled`` episode flags); ``seed`` and the ``n_*`` sizes do not apply.
+
+    ``cfg["corruption"]`` (default 0) makes D_S noisy as the paper's G.6 does: that share of its trajectories is
+    replaced by unsafe ones (episode cost above ``cost_threshold``) drawn from D_U outside D_S and D_P (seeded).
 
     ``extra_roles`` may hold ``"nonpreferred"`` (D_N, for SafeDICE): the *unsafe* episodes of D_U (episode
     cost above ``cost_threshold``, F.1's non-preferred label), all of them (the paper, section 5.2.1: "we use
@@ -135,9 +150,31 @@ def select_roles(
     if unknown:
         raise ValueError(f"unknown extra roles {unknown}; available: {EXTRA_ROLES}")
     roles = _base_roles(episodes, cfg, cost_threshold=cost_threshold, metadata=metadata, seed=seed)
+    if float(cfg.get("corruption") or 0.0) != 0.0:
+        roles["safe"] = _corrupted_safe(episodes, roles, float(cfg["corruption"]), cost_threshold, seed)
     if "nonpreferred" in extra_roles:
         roles["nonpreferred"] = _nonpreferred(episodes, roles["unlabeled"], cfg, cost_threshold, seed)
     return roles
+
+
+def _corrupted_safe(
+    episodes: TensorDict, roles: dict[str, torch.Tensor], rate: float, cost_threshold: float, seed: int
+) -> torch.Tensor:
+    """D_S with the share ``rate`` of its trajectories replaced by unsafe episodes of D_U that are in neither D_S
+    nor D_P (noisy safe demonstrations, G.6), see :func:`select_roles`."""
+    if not 0.0 <= rate < 1.0:
+        raise DatasetError(f"dataset.corruption = {rate}: expected a share in [0, 1)")
+    cost = episode_stats(episodes)["cost"]
+    taken = torch.cat([roles["safe"], roles["performant"]])
+    candidates = roles["unlabeled"][~torch.isin(roles["unlabeled"], taken)]
+    unsafe = candidates[cost[candidates] > cost_threshold]
+    needed = round(rate * roles["safe"].numel())
+    if unsafe.numel() < needed:
+        raise DatasetError(
+            f"dataset.corruption={rate} replaces {needed} of D_S's {roles['safe'].numel()} trajectories, but D_U "
+            f"has {unsafe.numel()} unsafe episodes outside D_S and D_P; lower the corruption or n_safe"
+        )
+    return corrupt(roles["safe"], unsafe, rate, seed=seed + 5)
 
 
 def _nonpreferred(
@@ -214,16 +251,21 @@ def _base_roles(
                 safeness=float(cfg["safeness"]),
                 n_unlabeled=None if n_unlabeled is None else int(n_unlabeled),
                 seed=seed,
+                episode_cost=episode_stats(episodes)["cost"],
+                cost_limit=cost_threshold,
             )
         except ValueError as err:  # sizes the pools cannot give
             raise DatasetError(
                 f"{cfg['source']}: {err} (dataset.n_safe={cfg['n_safe']}, n_performant={cfg['n_performant']}, "
                 f"n_unlabeled={n_unlabeled}); lower the sizes"
             ) from None
-    try:
-        labels = label_ilsp(episodes, cost_threshold, float(cfg.get("return_quantile", 0.9)))
-    except DatasetError as err:
-        raise DatasetError(f"{cfg['source']}: {err} (or raise dataset.cost_threshold)") from None
+    if scheme == "replay":
+        labels = _replay_labels(episodes, cfg, cost_threshold, metadata)
+    else:
+        try:
+            labels = label_ilsp(episodes, cost_threshold, float(cfg.get("return_quantile", 0.9)))
+        except DatasetError as err:
+            raise DatasetError(f"{cfg['source']}: {err} (or raise dataset.cost_threshold)") from None
     roles = {}
     for role, key, offset in (("safe", "n_safe", 0), ("performant", "n_performant", 1)):
         ids, k = labels[role], int(cfg[key])
@@ -243,6 +285,20 @@ def _base_roles(
         unlabeled if n_unlabeled is None else draw(unlabeled, int(n_unlabeled), seed=seed + 2)
     )
     return roles
+
+
+def _replay_labels(episodes: TensorDict, cfg: Mapping, cost_threshold: float, metadata: Mapping) -> dict:
+    """F.2's labels of a replay buffer (:func:`~spoil_torchrl.data.replay_subsets`): safe iff the episode cost
+    is within ``cost_threshold``, performant iff the return reaches ``return_fraction`` (0.9) of the
+    safe-optimal return (``dataset.return_range``'s R_max, else the file's ``safe_high_return``)."""
+    given = cfg.get("return_range")
+    optimal = float(given[1]) if given is not None else metadata.get("safe_high_return")
+    if optimal is None:
+        raise DatasetError(
+            f"{cfg['source']}: dataset.scheme=replay needs the safe-optimal return (the file's safe_high_return, "
+            "or dataset.return_range=[R_min,R_max])"
+        )
+    return replay_subsets(episodes, cost_threshold, float(optimal), float(cfg.get("return_fraction", 0.9)))
 
 
 def prepare_dataset(

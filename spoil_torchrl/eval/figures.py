@@ -9,6 +9,8 @@ outside the panels, so that no legend covers a point.
   algorithm with standard-error bars, the safe region (cost <= 1) shaded and its edge drawn.
 * :func:`plot_learning_curves`: normalised feasible return and normalised cost against the training step,
   mean over seeds with the standard error shaded, the cost limit drawn.
+* :func:`plot_levels`: a paper experiment (Fig. 4, B, H, I): both metrics against the experiment's level, mean
+  over seeds with the standard error shaded, the safe region shaded, the average over tasks and each task.
 
 Example:
     >>> import tempfile, pathlib
@@ -26,7 +28,14 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["ALGORITHM_NAMES", "algorithm_order", "algorithm_style", "plot_learning_curves", "plot_tradeoff"]
+__all__ = [
+    "ALGORITHM_NAMES",
+    "algorithm_order",
+    "algorithm_style",
+    "plot_learning_curves",
+    "plot_levels",
+    "plot_tradeoff",
+]
 
 #: Fixed colours and markers, in the paper's column order; later algorithms take the following ones.
 _COLOURS = ("#1f77b4", "#ff7f0e", "#8c564b", "#2ca02c", "#9467bd", "#e377c2", "#7f7f7f", "#bcbd22", "#d62728")
@@ -248,6 +257,87 @@ def plot_learning_curves(
     handles = [Line2D([], [], color=algorithm_style(a, order)["color"], label=names.get(a, a)) for a in algos]
     fig.legend(handles=[*handles, limit], loc="lower center", ncol=min(len(handles) + 1, 6), frameon=False)
     fig.tight_layout(rect=(0, 0.06 if len(axes) > 2 else 0.1, 1, 1))
+    _save(plt, fig, path)
+
+
+def plot_levels(
+    panels: Sequence[tuple[str, Mapping[tuple, Mapping]]],
+    levels: Sequence,
+    path: str | Path,
+    *,
+    level_name: str,
+    names: Mapping[str, str] | None = None,
+    order: Sequence[str] = PAPER_ORDER,
+) -> None:
+    """Save an experiment's figure: one column per panel (e.g. the average over tasks, then each task),
+    normalised feasible return (upper row) and normalised cost (lower row, square-root scale, safe region
+    shaded) against the level, one line per method with the standard error shaded.
+
+    ``panels`` is a list of ``(title, rows)`` with ``rows[(level, algo)]`` holding both metrics as
+    ``(mean, standard error)``; ``levels`` are drawn evenly spaced, in the given order, and labelled.
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> rows = {(v, a): {"normalized_feasible_return": (0.5 + v / 4, 0.05), "normalized_cost": (c * v, 0.1)}
+        ...         for v in (0.25, 0.75) for a, c in (("bc", 4.0), ("spoildice", 0.5))}
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "fig.png"
+        >>> plot_levels([("average", rows)], [0.25, 0.75], path, level_name="performance")
+        >>> path.stat().st_size > 0
+        True
+    """
+    from matplotlib.patches import Patch
+
+    plt, names = _pyplot(), dict(ALGORITHM_NAMES if names is None else names)
+    algos = sorted({a for _, rows in panels for _, a in rows}, key=lambda a: algorithm_order(a, order))
+    fig, axes = plt.subplots(2, len(panels), figsize=(4.2 * len(panels), 6.4), squeeze=False)
+    x = list(range(len(levels)))
+    for col, (title, rows) in enumerate(panels):
+        top, bottom = axes[0][col], axes[1][col]
+        cost_max = 1.5
+        for algo in algos:
+            points = [(i, rows[(v, algo)]) for i, v in enumerate(levels) if (v, algo) in rows]
+            if not points:
+                continue
+            style = algorithm_style(algo, order)
+            for ax, metric in ((top, "normalized_feasible_return"), (bottom, "normalized_cost")):
+                xs = [i for i, _ in points]
+                mean = [r[metric][0] for _, r in points]
+                se = [_nan0(r[metric][1]) for _, r in points]
+                lo = [
+                    max(m - e, 0.0) if metric == "normalized_cost" else m - e
+                    for m, e in zip(mean, se, strict=True)
+                ]
+                hi = [m + e for m, e in zip(mean, se, strict=True)]
+                if metric == "normalized_cost":
+                    cost_max = max(cost_max, *hi)
+                ax.plot(
+                    xs,
+                    mean,
+                    color=style["color"],
+                    marker=style["marker"],
+                    markersize=5,
+                    linewidth=2 if algo == "spoildice" else 1.2,
+                )
+                ax.fill_between(xs, lo, hi, color=style["color"], alpha=0.15, linewidth=0)
+        top.set_title(title, fontsize=10)
+        top.set_ylabel("normalised feasible return")
+        bottom.set_yscale("function", functions=(_sqrt, _square))
+        bottom.set_ylim(0, cost_max * 1.08)
+        ticks = _spread_ticks(cost_max * 1.08)
+        bottom.set_yticks(ticks)
+        bottom.set_yticklabels([f"{t:g}" for t in ticks])
+        bottom.axhspan(0, 1, color="tab:green", alpha=0.12, zorder=0)
+        bottom.axhline(1.0, color="tab:green", linewidth=1)
+        bottom.set_ylabel("normalised cost (square-root scale)")
+        for ax in (top, bottom):
+            ax.set_xticks(x)
+            ax.set_xticklabels([f"{v:g}" if isinstance(v, float) else str(v) for v in levels])
+            ax.set_xlim(-0.3, len(levels) - 0.7)
+            ax.grid(alpha=0.3)
+        bottom.set_xlabel(level_name)
+    safe = Patch(color="tab:green", alpha=0.25, label="safe (cost <= 1)")
+    _shared_legend(fig, algos, names, order, extra=[safe])
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     _save(plt, fig, path)
 
 

@@ -97,3 +97,65 @@ def read_replay(directory: str | os.PathLike) -> dict[str, np.ndarray]:
             parts[name].append(stored[name].numpy())
         parts["batch"].append(np.full(len(stored["rewards"]), int(stored["batch"]), dtype=np.int64))
     return {name: np.concatenate(values) for name, values in parts.items()}
+
+
+def write_replay_dataset(
+    directory: str | os.PathLike,
+    path: str | os.PathLike,
+    env_id: str,
+    *,
+    reference_episodes: int = 10,
+    seed: int = 0,
+    metadata: dict | None = None,
+) -> Path:
+    """A replay dataset file (DSRL layout, atomic, :func:`~spoil_torchrl.data.hdf5.write_dsrl_file`) from the
+    trajectory buffer ``directory`` of an expert's training in ``env_id``.
+
+    Its metadata holds what the ``replay`` labelling scheme and the normalisation need: ``env_id``, the task's
+    ``cost_threshold``, the ``random_return`` and ``safe_high_return`` of the reference policies
+    (:func:`~spoil_torchrl.data.collect.reference_jobs`: the committed ``safe-high`` policy's mean return is the
+    safe-optimal return that labels performant trajectories), ``replay`` (the buffer's folder, its batches and
+    episodes, and each episode's training batch in ``episode_batches``), the software ``stack`` and
+    ``metadata``'s entries.
+    """
+    from spoil_torchrl.data.collect import episode_bounds, episode_totals, reference_jobs
+    from spoil_torchrl.data.hdf5 import write_dsrl_file
+    from spoil_torchrl.stack import current_stack
+    from spoil_torchrl.tasks import get_env_task
+
+    task = get_env_task(env_id)
+    arrays = read_replay(directory)
+    batch = arrays.pop("batch")
+    if (
+        arrays["observations"].shape[-1] != task.observation_dim
+        or arrays["actions"].shape[-1] != task.action_dim
+    ):
+        raise ValueError(
+            f"{directory}: observation/action sizes {arrays['observations'].shape[-1]}/"
+            f"{arrays['actions'].shape[-1]}, but {env_id} has {task.observation_dim}/{task.action_dim}: the "
+            "buffer belongs to another task"
+        )
+    starts, _ = episode_bounds(arrays)
+    references = {
+        name: float(episode_totals(job())[0].mean())
+        for name, job in reference_jobs(env_id, episodes=reference_episodes, seed=seed).items()
+    }
+    returns, costs = episode_totals(arrays)
+    meta = {
+        "env_id": env_id,
+        "cost_threshold": task.cost_limit,
+        "random_return": references.get("random_return"),
+        "safe_high_return": references.get("safe_high_return"),
+        "replay": {
+            "source": str(Path(directory).resolve()),
+            "batches": int(batch.max()) + 1,
+            "episodes": len(starts),
+            "episode_batches": batch[starts].tolist(),
+            "mean_return": float(returns.mean()),
+            "mean_cost": float(costs.mean()),
+        },
+        "steps": int(arrays["rewards"].shape[0]),
+        "stack": current_stack(),
+        **(metadata or {}),
+    }
+    return write_dsrl_file(path, arrays, metadata=meta)

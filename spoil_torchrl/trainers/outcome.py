@@ -15,6 +15,8 @@ Ctrl-C, SIGTERM                           ``interrupted; continue with: <the com
 ========================================  ==========================================================  ======
 
 Anything else is a bug and keeps its traceback; ``HYDRA_FULL_ERROR=1`` shows the traceback of every case.
+In a job of a sweep (``keep_going``), a diverged run prints its line and the sweep goes on with its next job:
+one cell's divergence is a result (the report lists it as failed), not a reason to stop the other cells.
 """
 
 from __future__ import annotations
@@ -48,9 +50,18 @@ def resume_command(recipe: str, run_dir: str | os.PathLike) -> str:
     return " ".join(["python", recipe, *kept, f"hydra.run.dir={run_dir}", "resume=true"])
 
 
+def is_sweep_job() -> bool:
+    """Whether this Hydra job is one job of a sweep (``-m``, or an experiment's ``hydra.mode: MULTIRUN``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
 @contextlib.contextmanager
-def ended_in_one_line(recipe: str, run_dir: str | os.PathLike) -> Iterator[None]:
-    """Run the body; end the process with the line and status of the table above when it stops early.
+def ended_in_one_line(recipe: str, run_dir: str | os.PathLike, *, keep_going: bool = False) -> Iterator[None]:
+    """Run the body; end the process with the line and status of the table above when it stops early
+    (``keep_going``: a diverged run's line only, naming ``run_dir``, and the caller goes on).
 
     Examples:
         >>> try:
@@ -68,6 +79,9 @@ def ended_in_one_line(recipe: str, run_dir: str | os.PathLike) -> Iterator[None]
     except USER_ERRORS as err:
         _exit(f"error: {err}", 2)
     except TrainingDiverged as err:  # marked "failed" in results.json; the report leaves it out
+        if keep_going:
+            print(f"failed: {Path(run_dir)}: {err}", file=sys.stderr)
+            return
         _exit(f"failed: {err}", 1)
     except OSError as err:
         if err.errno not in DISK_ERRORS:

@@ -6,7 +6,8 @@ on one machine, so the resumed run does it again and compares :func:`pretraining
 the checkpoint; the main stage's networks, optimisers, step counters and random-number streams come from
 the checkpoint. :func:`settings_differ` refuses a resume with other settings, and :func:`trim_csv_logs` cuts
 the CSV logs (TorchRL's :class:`~torchrl.record.loggers.CSVLogger`) back to the rows they had at the
-checkpoint, so a resumed run's logs hold every step once.
+checkpoint, so a resumed run's logs hold every step once. :func:`finished_already` lets ``resume=auto`` pass
+over a run that has finished with the same settings (a sweep started again skips its finished cells).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from omegaconf import OmegaConf
 from spoil_torchrl.files import update_digest, write_atomic
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.trainers.checkpoint import CheckpointError
+from spoil_torchrl.trainers.run_dir import RunDirError, run_status
 
 #: Settings that may change between a run and its resumption (they do not change what is trained).
 RESUMABLE_CHANGES = ("progress",)
@@ -146,3 +148,40 @@ def trim_csv_logs(log_dir: str | os.PathLike, counts: Mapping[str, int]) -> None
             with open(path, "rb") as f:
                 lines = f.readlines()[:keep]
             write_atomic(path, b"".join(lines))
+
+
+def finished_already(run_dir: str | os.PathLike, config_yaml: str, resume: bool | str) -> dict | None:
+    """The results of the run in ``run_dir`` when ``resume`` is ``"auto"`` and that run has finished with the
+    settings ``config_yaml`` (its ``config.yaml``; :data:`RESUMABLE_CHANGES` aside): there is nothing to do, and
+    a sweep started again passes over its finished cells. ``None`` otherwise (the run is started or resumed as
+    :func:`~spoil_torchrl.trainers.run_dir.claim_run_dir` decides). Nothing is written.
+
+    Raises:
+        RunDirError: the finished run was made with other settings (a changed sweep that names its cells
+            as before would otherwise pass over runs that are not its own).
+
+    Examples:
+        >>> import tempfile
+        >>> run = Path(tempfile.mkdtemp())
+        >>> _ = (run / "results.json").write_text('{"status": "finished", "seed": 0}')
+        >>> _ = (run / "config.yaml").write_text("seed: 0")
+        >>> finished_already(run, "seed: 0", "auto")
+        {'status': 'finished', 'seed': 0}
+        >>> finished_already(run, "seed: 0", True) is None  # resume=true on a finished run is refused later
+        True
+        >>> finished_already(run, "seed: 1", "auto")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.trainers.run_dir.RunDirError: ...: the run there has finished, with other settings (seed)...
+    """
+    run_dir = Path(run_dir)
+    if resume != "auto" or run_status(run_dir) != "finished":
+        return None
+    config = run_dir / "config.yaml"
+    differ = settings_differ(config.read_text(), config_yaml) if config.is_file() else []
+    if differ:
+        raise RunDirError(
+            f"{run_dir}: the run there has finished, with other settings ({', '.join(differ)}); start the new "
+            "settings in another directory (another hydra.run.dir or hydra.sweep.dir)"
+        )
+    return json.loads((run_dir / "results.json").read_text())

@@ -15,9 +15,11 @@ from omegaconf import DictConfig, OmegaConf
 from spoil_torchrl.eval.evaluator import METRICS
 from spoil_torchrl.files import write_atomic
 
-#: Settings left out of ``config.yaml``: how to start (``resume``); ``seeds`` is left out when unset (a seed of a
-#: ``seeds=[...]`` run has the settings of the single-seed run of that seed, so the two compare and resume alike).
-NOT_WRITTEN = ("resume",)
+#: Settings left out of ``config.yaml``: how to start (``resume``) and which sweep the run is a cell of
+#: (``experiment``, ``grid``: the cell's settings are the same in any sweep that has it, see
+#: :func:`experiment_cell`); ``seeds`` is left out when unset (a seed of a ``seeds=[...]`` run has the settings
+#: of the single-seed run of that seed, so the two compare and resume alike).
+NOT_WRITTEN = ("resume", "experiment", "grid")
 
 
 def _json_safe(value):
@@ -54,6 +56,25 @@ def aggregate(evaluations: list[dict], last: int) -> dict:
     """
     tail = evaluations[-last:]
     return {key: sum(e[key] for e in tail) / len(tail) for key in METRICS}
+
+
+def experiment_cell(cfg: DictConfig) -> dict | None:
+    """Which cell of a paper experiment's sweep the run is (``experiment=...``): the experiment's name, the
+    setting it varies (``level``, a dotted name, or ``None`` for a table) and that setting's value here; written
+    into ``results.json``, where the experiment figures find it. ``None`` outside an experiment.
+
+    Examples:
+        >>> cfg = OmegaConf.create({"experiment": {"name": "fig4c", "level": "dataset.performance"},
+        ...                         "dataset": {"performance": 0.25}})
+        >>> experiment_cell(cfg)
+        {'name': 'fig4c', 'level': 'dataset.performance', 'value': 0.25}
+    """
+    experiment = cfg.get("experiment")
+    if experiment is None:
+        return None
+    level = experiment.get("level")
+    value = None if level is None else OmegaConf.select(cfg, level, throw_on_missing=True)
+    return {"name": str(experiment.name), "level": level, "value": value}
 
 
 def settings_yaml(cfg: DictConfig) -> str:
