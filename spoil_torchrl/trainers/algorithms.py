@@ -24,6 +24,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
 
 from spoil_torchrl.data.buffers import DualDemoBuffers
+from spoil_torchrl.data.labeling import episode_stats
 from spoil_torchrl.modules import (
     ObservationNormalizer,
     make_actor,
@@ -46,6 +47,7 @@ from spoil_torchrl.objectives import (
 )
 from spoil_torchrl.trainers.compiled import CompiledStepper
 from spoil_torchrl.trainers.offline import MultiLossStepper, StepEvery, offline_trainer
+from spoil_torchrl.trainers.settings import SettingsError
 
 
 @dataclass(frozen=True)
@@ -243,12 +245,42 @@ def build_fbc(
     constraint: EpisodeConstraint | None = None,
 ) -> PolicyTraining:
     """Filtered BC (paper section 5, Table B): NLL on D_P weighted by the estimated safe support 1_S (C_S
-    against D_U, the kappa cut on D_S), i.e. BC on the performant transitions inside the safe support."""
-    discriminators = train_discriminators(
-        cfg["discriminator"], buffers, obs_dim, act_dim, positives=("safe",), logger=logger, progress=progress
-    )
-    support = _fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
-    buffers.annotate("performant", support)
+    against D_U, the kappa cut on D_S), i.e. BC on the performant transitions inside the safe support.
+
+    ``cfg["support"] = "oracle"`` is an ablation that no method can run on real data: the weight is 1 on D_P's
+    trajectories whose true episode cost is within the limit (``constraint``) and 0 elsewhere, i.e. BC on D_P's
+    safe trajectories, the filter FBC's estimate approximates. It measures what the estimate's errors cost."""
+    support = cfg.get("support", "estimated")
+    if support not in ("estimated", "oracle"):
+        raise SettingsError(f"algo.support = {support!r}: expected estimated or oracle")
+    if support == "oracle":
+        if constraint is None:
+            raise ValueError(
+                "FBC with support=oracle needs the cost limit: pass constraint=EpisodeConstraint(...)"
+            )
+        cost = episode_stats(buffers["performant"].storage[:])["cost"]
+        limit = constraint.cost_threshold
+        buffers.annotate(
+            "performant",
+            "safe_support",
+            lambda td: (
+                (cost[td["episode"]] <= limit)
+                .to(td["next", "reward"].dtype)
+                .reshape(td["next", "reward"].shape)
+            ),
+        )
+    else:
+        discriminators = train_discriminators(
+            cfg["discriminator"],
+            buffers,
+            obs_dim,
+            act_dim,
+            positives=("safe",),
+            logger=logger,
+            progress=progress,
+        )
+        support = _fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
+        buffers.annotate("performant", support)
     share = float(buffers["performant"].storage[:]["safe_support"].float().mean())
     return _weighted_bc(
         cfg, obs_dim, act_dim, "performant", "safe_support", {"support_share_performant": share}

@@ -64,3 +64,39 @@ def test_demodice_s_trains_its_discriminator_against_the_safe_demonstrations(tin
     calls.clear()
     ALGORITHMS["demodice_u"](cfg, _buffers(tiny_pc1_dataset), 28, 2, progress=False)
     assert len(calls) == 1 and calls[0].get("against", "unlabeled") == "unlabeled"
+
+
+def test_fbc_with_the_oracle_support_keeps_exactly_the_safe_trajectories_of_d_p(tiny_pc1_dataset):
+    import pytest
+
+    from spoil_torchrl.data import episode_stats
+    from spoil_torchrl.trainers.algorithms import EpisodeConstraint
+    from spoil_torchrl.trainers.settings import SettingsError
+
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    cost = episode_stats(episodes)["cost"]
+    # D_P: the three safe-high and the three unsafe-high episodes
+    roles = {
+        "safe": torch.arange(0, 3),
+        "performant": torch.cat([torch.arange(0, 3), torch.arange(6, 9)]),
+        "unlabeled": torch.arange(12),
+    }
+    buffers = DualDemoBuffers(episodes, roles, batch_size=128, seed=0)
+    cfg = {
+        "distribution": "normal",
+        "hidden_cells": [16],
+        "actor_lr": 1e-3,
+        "kappa": 0.01,
+        "support": "oracle",
+    }
+    training = ALGORITHMS["fbc"](cfg, buffers, 28, 2, progress=False, constraint=EpisodeConstraint(25.0, 500))
+    stored = buffers["performant"].storage[:]
+    expected = (cost[stored["episode"]] <= 25.0).float()
+    assert stored["safe_support"].shape == stored["next", "reward"].shape
+    assert torch.equal(stored["safe_support"].reshape(-1), expected)
+    assert 0 < float(expected.mean()) < 1  # both kinds present: the test can tell the weights apart
+    assert training.diagnostics["support_share_performant"] == pytest.approx(float(expected.mean()))
+    with pytest.raises(SettingsError, match="expected estimated or oracle"):
+        ALGORITHMS["fbc"]({**cfg, "support": "true"}, buffers, 28, 2, progress=False)
+    with pytest.raises(ValueError, match="needs the cost limit"):
+        ALGORITHMS["fbc"](cfg, buffers, 28, 2, progress=False)
