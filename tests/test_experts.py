@@ -219,7 +219,9 @@ def test_ppo_config_refuses_impossible_sizes():
 # --- committed policies ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("env_id", ["SafetyPointCircle1-v0", "SafetyHalfCheetahVelocity-v1"])
+@pytest.mark.parametrize(
+    "env_id", ["SafetyPointCircle1-v0", "SafetyPointCircle2-v0", "SafetyHalfCheetahVelocity-v1"]
+)
 def test_zoo_has_the_four_policy_types(env_id):
     from spoil_torchrl.experts import load_policy, zoo_names, zoo_policy
 

@@ -13,6 +13,7 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
 * ``point-circle1-controlled`` -- the four typed pools of the controlled datasets (F.2), 500 episodes each, so
   that D_U can hold 2,000 trajectories; pick D_S / D_P / D_U with
   :func:`~spoil_torchrl.data.controlled_mix` on :func:`~spoil_torchrl.data.collect.segment_pools`.
+* ``point-circle2-controlled`` -- the same four pools for SafetyPointCircle2-v0.
 * ``half-cheetah-velocity-controlled`` -- the same four pools for SafetyHalfCheetahVelocity-v1 (2,000 episodes
   of 1,000 steps).
 """
@@ -48,8 +49,13 @@ class GeneratedDataset:
         return sum(s.episodes for s in self.segments)
 
     def fingerprint(self, num_envs: int) -> str:
-        """A hash of everything that determines the file's content (the recipe and ``num_envs``)."""
-        text = json.dumps([self.env_id, self.seed, num_envs, [asdict(s) for s in self.segments]])
+        """A hash of everything that determines the file's content: the recipe, ``num_envs`` and the bytes of
+        every committed policy it rolls out (a policy re-exported under the same name makes the file again)."""
+        from spoil_torchrl.experts.policies import zoo_policy
+
+        policies = sorted({s.policy for s in self.segments if s.policy.startswith("zoo:")})
+        digests = [hashlib.sha256(zoo_policy(self.env_id, p[4:]).read_bytes()).hexdigest() for p in policies]
+        text = json.dumps([self.env_id, self.seed, num_envs, [asdict(s) for s in self.segments], digests])
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -86,6 +92,12 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             "SafetyPointCircle1-v0",
             _typed(500),
             "controlled PointCircle1 pools: 500 episodes of each policy type (paper F.2)",
+        ),
+        GeneratedDataset(
+            "point-circle2-controlled",
+            "SafetyPointCircle2-v0",
+            _typed(500),
+            "controlled PointCircle2 pools: 500 episodes of each policy type (paper F.2)",
         ),
         GeneratedDataset(
             "half-cheetah-velocity-controlled",
