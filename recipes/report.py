@@ -36,22 +36,12 @@ from pathlib import Path
 import torch
 
 from spoil_torchrl.eval import mean_stderr
+from spoil_torchrl.eval.experiments import train_section
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
 from spoil_torchrl.stack import stack_label, stack_name
 from spoil_torchrl.trainers.run_dir import run_status
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
-
-
-def _train_settings(results_path: Path) -> str | None:
-    """The ``train:`` section of the run's ``config.yaml`` (``None`` when the run folder has none)."""
-    config = results_path.parent / "config.yaml"
-    if not config.exists():
-        return None
-    from omegaconf import OmegaConf
-
-    train = OmegaConf.load(config).get("train")
-    return None if train is None else OmegaConf.to_yaml(train)
 
 
 def load_runs(
@@ -93,7 +83,7 @@ def load_runs(
             )
         skipped.extend((path, f"an older run of seed {key[2]}") for _, path, _ in copies[:-1])
         _, path, results = copies[-1]
-        budgets[results["dataset"]].setdefault(_train_settings(path), path)
+        budgets[results["dataset"]].setdefault(train_section(path), path)
         runs[(results["dataset"], results["algo"])].append(results)
     for dataset, settings in budgets.items():
         if len(settings) > 1:
@@ -285,18 +275,24 @@ def main() -> None:
     if not runs:
         raise SystemExit(f"no finished results.json under {', '.join(map(str, args.folders))}")
     summary = summarize(runs)
-    text = markdown(summary)
+    figures = [(args.plot, lambda path: plot_tradeoff(summary, path))]
+    seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
+    figures.append((args.curves, lambda path: plot_learning_curves(learning_curves(runs), path, seeds=seeds)))
+    write_outputs(markdown(summary), args.out, figures)
+
+
+def write_outputs(text: str, out: Path | None, figures: list[tuple[Path | None, object]]) -> None:
+    """Print ``text`` and write it to ``out``; draw each ``(path, draw)`` figure whose path was given. An
+    unwritable place ends the report in one line."""
     print(text)
     try:
-        if args.out:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(text + "\n")
-        if args.plot:
-            plot_tradeoff(summary, args.plot)
-        if args.curves:
-            seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
-            plot_learning_curves(learning_curves(runs), args.curves, seeds=seeds)
-    except OSError as err:  # an unwritable place: one line
+        if out:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(text + "\n")
+        for path, draw in figures:
+            if path is not None:
+                draw(path)
+    except OSError as err:
         raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
 
 
@@ -316,27 +312,21 @@ def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
     try:
         experiment = load_experiment(args.folders, name=args.experiment, skipped=skipped)
     except (FileNotFoundError, ValueError) as error:
-        for path, reason in skipped:
-            print(f"skipped {path.parent}: {reason}", file=sys.stderr)
-        raise SystemExit(f"error: {error}") from None
+        experiment = error
     for path, reason in skipped:
         print(f"skipped {path.parent}: {reason}", file=sys.stderr)
+    if isinstance(experiment, Exception):
+        raise SystemExit(f"error: {experiment}")
+    if args.plot and experiment.level is None:
+        raise SystemExit(f"error: {experiment.name} has one configuration: a table, not a figure")
     try:
         statistics = experiment_statistics(experiment)
     except ImportError as err:  # rliable is an extra
         statistics = f"(aggregate statistics left out: {err})"
-    text = experiment_markdown(experiment) + "\n\n" + statistics
-    print(text)
-    try:
-        if args.out:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(text + "\n")
-        if args.plot:
-            if experiment.level is None:
-                raise SystemExit(f"error: {experiment.name} has one configuration: a table, not a figure")
-            plot_levels(figure_panels(experiment), experiment.levels, args.plot, level_name=experiment.level)
-    except OSError as err:
-        raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
+    draw = lambda path: plot_levels(  # noqa: E731
+        figure_panels(experiment), experiment.levels, path, level_name=experiment.level
+    )
+    write_outputs(experiment_markdown(experiment) + "\n\n" + statistics, args.out, [(args.plot, draw)])
 
 
 if __name__ == "__main__":

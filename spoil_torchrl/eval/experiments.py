@@ -66,7 +66,9 @@ class Experiment:
         return sorted({a for _, _, a in self.cells}, key=algorithm_order)
 
 
-def _train_section(results_path: Path) -> str | None:
+def train_section(results_path: Path) -> str | None:
+    """The ``train:`` section (the training budget) of the ``config.yaml`` beside a run's ``results.json``, as
+    YAML (``None`` when the run folder has none): runs of one table must share it."""
     from omegaconf import OmegaConf
 
     config = results_path.parent / "config.yaml"
@@ -136,7 +138,7 @@ def _cells(name: str, runs: list[tuple[Path, dict]]) -> Experiment:
                 f"{seen[(*key, results['seed'])].parent} and {path.parent}"
             )
         seen[(*key, results["seed"])] = path
-        budgets.setdefault(_train_section(path), path)
+        budgets.setdefault(train_section(path), path)
         experiment.cells.setdefault(key, []).append(results)
     if len(budgets) > 1:
         raise ValueError(
