@@ -49,6 +49,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_losses.py $(ARGS)
 	$(PY) benchmarks/bench_data.py
 	$(PY) benchmarks/bench_eval.py
+	$(PY) benchmarks/bench_experts.py
 	$(PY) benchmarks/run_breakdown.py
 
 # Mutation testing of the core math ([tool.mutmut] in pyproject.toml; needs mutmut, not part of the set-up);

@@ -71,6 +71,7 @@ def main(cfg: DictConfig) -> None:
                 run_dir,
                 progress=cfg.progress,
                 resume=resuming,
+                env_id=task.env_id,
             )
     finally:
         release_run_dir(run_dir)

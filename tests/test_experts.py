@@ -101,6 +101,7 @@ def _train(run_dir, config, resume=False):
         run_dir,
         progress=False,
         resume=resume,
+        env_id="SafetyPointCircle1-v0",
     )
 
 
@@ -112,13 +113,22 @@ def _without_times(path):
 
 
 @needs_safety_gymnasium
-@pytest.mark.parametrize("normalize", [False, True])
-def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeypatch, normalize):
+@pytest.mark.parametrize(("normalize", "num_envs"), [(False, 1), (True, 1), (False, 2)])
+def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeypatch, normalize, num_envs):
+    # num_envs=2: every batch from two environments in lockstep, 500 frames (one episode) each
     from spoil_torchrl.experts import load_policy
     from spoil_torchrl.experts import ppo as ppo_module
     from spoil_torchrl.experts.replay import read_replay
 
-    _train(tmp_path / "whole", _tiny_config(normalize_observations=normalize))
+    _train(
+        tmp_path / "whole",
+        _tiny_config(
+            normalize_observations=normalize,
+            num_envs=num_envs,
+            frames_per_batch=500 * num_envs,
+            total_frames=2000 * num_envs,
+        ),
+    )
     update = ppo_module.ppo_update
 
     def killed_in_batch_four(learner, batch, config, index, cost):
@@ -128,11 +138,28 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
 
     monkeypatch.setattr(ppo_module, "ppo_update", killed_in_batch_four)
     with pytest.raises(KeyboardInterrupt):
-        _train(tmp_path / "cut", _tiny_config(normalize_observations=normalize))
+        _train(
+            tmp_path / "cut",
+            _tiny_config(
+                normalize_observations=normalize,
+                num_envs=num_envs,
+                frames_per_batch=500 * num_envs,
+                total_frames=2000 * num_envs,
+            ),
+        )
     assert json.loads((tmp_path / "cut" / "results.json").read_text())["status"] == "interrupted"
     assert len(_without_times(tmp_path / "cut" / "log.jsonl")) == 3
     monkeypatch.setattr(ppo_module, "ppo_update", update)
-    _train(tmp_path / "cut", _tiny_config(normalize_observations=normalize), resume=True)
+    _train(
+        tmp_path / "cut",
+        _tiny_config(
+            normalize_observations=normalize,
+            num_envs=num_envs,
+            frames_per_batch=500 * num_envs,
+            total_frames=2000 * num_envs,
+        ),
+        resume=True,
+    )
 
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     names = sorted(p.name for p in whole.glob("ckpt_*.pt"))
@@ -156,7 +183,8 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
         3,
     }
     results = json.loads((cut / "results.json").read_text())
-    assert results["status"] == "finished" and results["resumed_at"] == [1000] and results["frames"] == 2000
+    assert results["status"] == "finished" and results["resumed_at"] == [1000 * num_envs]
+    assert results["frames"] == 2000 * num_envs
     policy, meta = load_policy(cut / names[-1], env_id="SafetyPointCircle1-v0")
     assert meta["observation_norm"] is normalize
     if normalize:  # the statistics of the batches before the last one, carried inside the policy
@@ -441,3 +469,46 @@ def test_a_recorded_training_becomes_a_replay_dataset_that_trains(tmp_path):
     assert trained.returncode == 0, trained.stderr[-3000:]
     results = json.loads((tmp_path / "run" / "results.json").read_text())
     assert results["status"] == "finished" and results["data"]["unlabeled"]["episodes"] == 6
+
+
+def test_lockstep_batches_count_and_record_each_environment_s_own_episodes(tmp_path):
+    """A [num_envs, T] batch: an environment's episode cut at the batch's end is neither counted nor recorded,
+    and never joined to the next environment's first episode."""
+    from tensordict import TensorDict
+
+    from spoil_torchrl.experts.replay import ReplayRecorder, read_replay
+
+    # env 0: an episode of 2 steps, then 2 steps cut; env 1: episodes of 1 and 3 steps
+    done = torch.tensor([[False, True, False, False], [True, False, False, True]]).unsqueeze(-1)
+    reward = torch.arange(8.0).reshape(2, 4, 1)
+    batch = TensorDict(
+        {
+            "observation": reward.clone(),
+            "action": torch.zeros(2, 4, 1),
+            "next": {
+                "observation": reward + 0.5,
+                "reward": reward,
+                "cost": torch.ones(2, 4, 1),
+                "terminated": torch.zeros_like(done),
+                "truncated": done,
+                "done": done,
+            },
+        },
+        [2, 4],
+    )
+    mean_return, mean_cost, episodes = EpisodeTracker().update(batch)
+    # returns 0+1 = 1 (env 0), 4 (env 1), 5+6+7 = 18 (env 1); costs 2, 1, 3
+    assert (
+        episodes == 3 and mean_return == pytest.approx((1 + 4 + 18) / 3) and mean_cost == pytest.approx(2.0)
+    )
+    assert ReplayRecorder(tmp_path, episodes=2).record(batch, 0) == 2
+    assert read_replay(tmp_path)["rewards"].tolist() == [0.0, 1.0, 4.0]  # env 0's episode, then env 1's first
+    assert ReplayRecorder(tmp_path, episodes=5).record(batch, 0) == 3
+    assert read_replay(tmp_path)["rewards"].tolist() == [0.0, 1.0, 4.0, 5.0, 6.0, 7.0]
+
+
+def test_num_envs_must_split_the_batch():
+    with pytest.raises(ValueError, match="does not split over ppo.num_envs = 3"):
+        PPOConfig(frames_per_batch=1000, minibatch_size=100, num_envs=3)
+    with pytest.raises(ValueError, match="num_envs"):
+        PPOConfig(num_envs=0)

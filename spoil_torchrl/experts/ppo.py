@@ -36,6 +36,7 @@ from torch import nn
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from tqdm.auto import tqdm
 
+from spoil_torchrl.experts.lockstep import LockstepCollector
 from spoil_torchrl.experts.ppo_update import PPOLearner, ppo_update
 from spoil_torchrl.experts.replay import ReplayRecorder
 from spoil_torchrl.files import write_atomic
@@ -57,6 +58,9 @@ class PPOConfig:
     both critics (OmniSafe's ``obs_normalize``): the statistics of every batch so far, fixed within a batch
     (updated after its PPO update, so a batch's log-probabilities are computed with the statistics it was
     collected with), saved inside the policy (:func:`~spoil_torchrl.modules.with_observation_norm`).
+    ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
+    (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
+    TorchRL environment); ``frames_per_batch`` must split evenly over them.
     """
 
     total_frames: int = 1_000_000
@@ -78,11 +82,19 @@ class PPOConfig:
     checkpoint_every: int = 5  # batches
     normalize_observations: bool = False
     record_episodes: int = 0
+    num_envs: int = 1
     seed: int = 0
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for name in ("total_frames", "frames_per_batch", "epochs", "minibatch_size", "checkpoint_every"):
+        for name in (
+            "total_frames",
+            "frames_per_batch",
+            "epochs",
+            "minibatch_size",
+            "checkpoint_every",
+            "num_envs",
+        ):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"ppo.{name} = {value!r}: expected an integer >= 1")
@@ -111,6 +123,10 @@ class PPOConfig:
                 or value <= 0
             ):
                 raise ValueError(f"ppo.{name} = {value!r}: expected a finite number > 0")
+        if self.frames_per_batch % self.num_envs:
+            raise ValueError(
+                f"ppo.frames_per_batch = {self.frames_per_batch} does not split over ppo.num_envs = {self.num_envs}"
+            )
         if not isinstance(self.record_episodes, int) or self.record_episodes < 0:
             raise ValueError(f"ppo.record_episodes = {self.record_episodes!r}: expected an integer >= 0")
         self.hidden_cells = tuple(self.hidden_cells)
@@ -133,11 +149,27 @@ class EpisodeTracker:
         self.running = torch.zeros(2, dtype=torch.float64)
 
     def update(self, batch: TensorDict) -> tuple[float, float, int]:
-        """Mean return and cost of the episodes finished in ``batch`` (NaN if none) and their number."""
+        """Mean return and cost of the episodes finished in ``batch`` (NaN if none) and their number; a
+        ``[num_envs, T]`` batch of environments that each start it afresh counts every row's episodes."""
+        if batch.ndim == 2:
+            rows = [EpisodeTracker()._finished(row) for row in batch.unbind(0)]
+            totals = [t for row in rows for t in row]
+            if not totals:
+                return math.nan, math.nan, 0
+            stacked = torch.stack(totals)
+            return float(stacked[:, 0].mean()), float(stacked[:, 1].mean()), len(totals)
         if batch.ndim != 1:
             raise ValueError(
                 f"EpisodeTracker expects one environment's [T] batch, got batch size {batch.shape}"
             )
+        finished = self._finished(batch)
+        if not finished:
+            return math.nan, math.nan, 0
+        totals = torch.stack(finished)
+        return float(totals[:, 0].mean()), float(totals[:, 1].mean()), len(finished)
+
+    def _finished(self, batch: TensorDict) -> list[torch.Tensor]:
+        """The (return, cost) of each episode that ends in the [T] ``batch``; the rest runs on."""
         steps = torch.cat([batch["next", "reward"], batch["next", "cost"]], -1).reshape(-1, 2).double()
         done = batch["next", "done"].reshape(-1)
         finished = []
@@ -147,10 +179,7 @@ class EpisodeTracker:
             self.running = torch.zeros(2, dtype=torch.float64)
             start = end
         self.running = self.running + steps[start:].sum(0)
-        if not finished:
-            return math.nan, math.nan, 0
-        totals = torch.stack(finished)
-        return float(totals[:, 0].mean()), float(totals[:, 1].mean()), len(finished)
+        return finished
 
 
 def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, index: int) -> TensorDict:
@@ -170,7 +199,12 @@ def resumable_state(run_dir: str | Path, config: PPOConfig) -> dict:
     run_dir = Path(run_dir)
     state = load_checkpoint(run_dir / CHECKPOINT_NAME)
     as_yaml = lambda settings: OmegaConf.to_yaml({"ppo": json.loads(json.dumps(settings))})  # noqa: E731
-    recorded = {"config_yaml": as_yaml(state["config"]), "results": {"stack": state["stack"]}}
+    # a setting added since the run was made had its default then (e.g. num_envs: 1)
+    settings = {
+        **{k: v for k, v in asdict(PPOConfig()).items() if k not in state["config"]},
+        **state["config"],
+    }
+    recorded = {"config_yaml": as_yaml(settings), "results": {"stack": state["stack"]}}
     check_resumable(recorded, as_yaml(asdict(config)), run_dir, settings_file="config.json")
     return state
 
@@ -184,6 +218,7 @@ def train_ppo(
     *,
     progress: bool = True,
     resume: bool = False,
+    env_id: str | None = None,
 ) -> list[dict]:
     """Train a PPO (or PPO-Lagrangian, ``config.lagrangian``) policy and checkpoint it under ``out_dir``.
 
@@ -200,6 +235,7 @@ def train_ppo(
         progress: a progress bar over all frames of the run (a resumed run starts it where it stopped), with
             its ETA.
         resume: continue from the training state in ``out_dir`` (same ``config``, same software stack).
+        env_id: the task, for ``config.num_envs`` > 1 (the lockstep collector makes its own environments).
 
     Returns:
         the log lines of the whole run.
@@ -244,11 +280,16 @@ def train_ppo(
         unit="frame",
         disable=not progress,
     )
-    env = make_env()
+    if config.num_envs > 1 and env_id is None:
+        raise ValueError("ppo.num_envs > 1 needs train_ppo(..., env_id=<the task>)")
+    env = make_env() if config.num_envs == 1 else LockstepCollector(env_id, config.num_envs)
     start = time.perf_counter()
     try:
         for index in range(first, batches):
-            batch = collect_batch(env, learner.actor, config, index)
+            if config.num_envs == 1:
+                batch = collect_batch(env, learner.actor, config, index)
+            else:
+                batch = env.batch(learner.actor, config.frames_per_batch, batch_seed(config.seed, index))
             frames += batch.numel()
             ep_return, ep_cost, n_episodes = EpisodeTracker().update(batch)
             line = {

@@ -56,11 +56,22 @@ class ReplayRecorder:
         self.episodes = episodes
 
     def record(self, batch: TensorDict, index: int) -> int:
-        """Store up to ``episodes`` of ``batch``'s finished episodes as ``batch_<index>.pt``; returns how many."""
-        ends = (batch["next", "done"].reshape(-1).nonzero().squeeze(-1) + 1).tolist()[: self.episodes]
-        stop = ends[-1] if ends else 0
+        """Store up to ``episodes`` of ``batch``'s finished episodes as ``batch_<index>.pt``; returns how many.
+        A ``[num_envs, T]`` batch gives its first environment's finished episodes first, then the next's."""
+        rows = batch.unbind(0) if batch.ndim == 2 else [batch]
+        kept, count = [], 0
+        for row in rows:
+            ends = (row["next", "done"].reshape(-1).nonzero().squeeze(-1) + 1).tolist()[
+                : self.episodes - count
+            ]
+            if ends:
+                kept.append(row[: ends[-1]])
+                count += len(ends)
+        stop = sum(part.shape[0] for part in kept)
         arrays = {
-            name: batch.get(key)[:stop].reshape(stop, -1).squeeze(-1) if stop else batch.get(key)[:0]
+            name: torch.cat([part.get(key).reshape(part.shape[0], -1) for part in kept]).squeeze(-1)
+            if kept
+            else batch.reshape(-1).get(key)[:0]
             for name, key in REPLAY_FIELDS.items()
         }
         if stop and not bool((arrays["terminals"] | arrays["timeouts"])[stop - 1]):
@@ -71,7 +82,7 @@ class ReplayRecorder:
             {**{k: v.clone() for k, v in arrays.items()}, "batch": index},
             self.directory / f"batch_{index:06d}.pt",
         )
-        return len(ends)
+        return count
 
 
 def read_replay(directory: str | os.PathLike) -> dict[str, np.ndarray]:
