@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from spoil_torchrl.data.collect import ROLLOUT_MODULES
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.eval import Evaluator, RolloutWriter
 from spoil_torchrl.modules import make_actor
@@ -55,7 +56,7 @@ def main() -> None:
             )
             for k in range(args.seeds)
         ]
-        pool = stack.enter_context(RolloutPool(workers=workers))
+        pool = stack.enter_context(RolloutPool(workers=workers, warm_up=ROLLOUT_MODULES))
 
         def shared_round() -> list[dict]:
             rollouts = pool.map([e.rollout_job(p) for e, p in zip(evaluators, policies, strict=True)])

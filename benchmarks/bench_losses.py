@@ -30,9 +30,9 @@ from torch import nn
 
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
+from spoil_torchrl.precision import matmul_precision, matmul_relative_error
 from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
 from spoil_torchrl.trainers.compiled import detached, update_gradients
-from spoil_torchrl.trainers.precision import matmul_precision, matmul_relative_error
 from spoil_torchrl.trainers.vectorized import VectorizedStepper
 
 

@@ -50,12 +50,14 @@ from spoil_torchrl.data import (
     segment_pools,
     standardize_observations,
 )
+from spoil_torchrl.data.collect import ROLLOUT_MODULES
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.data.prepare import prepare_dataset
 from spoil_torchrl.envs import log_mujoco_warnings
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.eval.evaluator import METRICS
+from spoil_torchrl.precision import matmul_precision
 from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers import CompiledStepper, offline_trainer, stop_on_signals
@@ -67,7 +69,6 @@ from spoil_torchrl.trainers.checkpoint import (
     set_rng_state,
 )
 from spoil_torchrl.trainers.outcome import ended_in_one_line, is_sweep_job
-from spoil_torchrl.trainers.precision import matmul_precision
 from spoil_torchrl.trainers.resume import (
     check_resumable,
     finished_already,
@@ -431,7 +432,9 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
     with contextlib.ExitStack() as stack:
         for seed_run in runs:
             seed_run.evaluator.writer = stack.enter_context(rollout_writer(seed_run))
-        pool = stack.enter_context(RolloutPool(workers=min(len(runs), available_cores()) - 1))
+        pool = stack.enter_context(
+            RolloutPool(workers=min(len(runs), available_cores()) - 1, warm_up=ROLLOUT_MODULES)
+        )
         trainer.train()
     stepper.sync()
     update_step = "vectorised, compiled" if stepper.compiled else "vectorised, eager"

@@ -30,9 +30,9 @@ from tqdm.auto import tqdm
 from spoil_torchrl.data.hdf5 import write_dsrl_file
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.divergence import check_finite
+from spoil_torchrl.precision import intra_op_threads, matmul_precision
 from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
-from spoil_torchrl.trainers.precision import intra_op_threads, matmul_precision
 
 #: ``policy`` value of a :class:`Segment` that acts uniformly at random.
 RANDOM_POLICY = "random"
@@ -40,6 +40,10 @@ RANDOM_POLICY = "random"
 #: From this many simulator steps on (about 10 s on one core), :func:`collect` shares its rollouts with worker
 #: processes by default.
 SHARED_STEPS = 50_000
+
+#: What a rollout worker imports when it starts (:class:`~spoil_torchrl.data.parallel.RolloutPool`'s
+#: ``warm_up``): this module and the simulators.
+ROLLOUT_MODULES = ("spoil_torchrl.data.collect", "spoil_torchrl.envs")
 
 
 @dataclass(frozen=True)
@@ -336,7 +340,7 @@ def collect(
     if workers is None:  # a worker's start (about 3 s of a core) pays from some 10 s of rollouts
         workers = 0 if total < SHARED_STEPS else min(len(jobs), available_cores()) - 1
     results = []
-    with RolloutPool(workers) as pool:
+    with RolloutPool(workers, warm_up=ROLLOUT_MODULES) as pool:
         for job, arrays in zip(jobs, pool.map(jobs, run_here), strict=True):
             if id(job) not in here:  # a worker's: the bar moves when it is done
                 bar.update(job.args[2] * task.episode_length)

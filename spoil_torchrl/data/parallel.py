@@ -55,9 +55,11 @@ def _start_worker(parent: int) -> None:
     threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
 
 
-def _warm_up() -> None:  # the imports, before the first evaluation needs them
-    import spoil_torchrl.data.collect  # noqa: F401
-    import spoil_torchrl.envs  # noqa: F401
+def _warm_up(modules: tuple[str, ...]) -> None:  # the jobs' imports, before the first job needs them
+    import importlib
+
+    for module in modules:
+        importlib.import_module(module)
 
 
 class RolloutPool:
@@ -66,6 +68,8 @@ class RolloutPool:
     Args:
         workers: worker processes (``None``: one per core this process may use, beyond its own; ``0``:
             everything runs here).
+        warm_up: modules each worker imports as soon as it starts (the jobs' own, e.g.
+            ``("spoil_torchrl.data.collect",)``), so that the first job does not wait for them.
 
     Examples:
         >>> from spoil_torchrl.eval import Evaluator
@@ -79,7 +83,7 @@ class RolloutPool:
         [500, 500]
     """
 
-    def __init__(self, workers: int | None = None) -> None:
+    def __init__(self, workers: int | None = None, *, warm_up: tuple[str, ...] = ()) -> None:
         # a worker that is starting runs the caller's script again (multiprocessing's own check of this case)
         if getattr(multiprocessing.current_process(), "_inheriting", False):
             raise RuntimeError(
@@ -99,7 +103,7 @@ class RolloutPool:
                     initargs=(os.getpid(),),
                 )
                 for _ in range(self.workers):
-                    self._executor.submit(_warm_up)
+                    self._executor.submit(_warm_up, tuple(warm_up))
             except Exception as err:  # e.g. in a daemonic process, which may not have children
                 self._give_up(err)
 

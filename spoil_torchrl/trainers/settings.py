@@ -15,7 +15,7 @@ from typing import Any
 
 from spoil_torchrl.data.parallel import available_cores
 from spoil_torchrl.data.prepare import SCHEMES
-from spoil_torchrl.trainers.precision import MATMUL_PRECISIONS
+from spoil_torchrl.precision import MATMUL_PRECISIONS
 
 
 class SettingsError(ValueError):

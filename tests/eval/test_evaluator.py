@@ -60,7 +60,7 @@ def test_an_evaluation_does_not_depend_on_the_callers_matmul_precision():
     import torch
 
     from spoil_torchrl.modules import make_actor
-    from spoil_torchrl.trainers.precision import matmul_precision
+    from spoil_torchrl.precision import matmul_precision
 
     torch.manual_seed(0)
     policy = make_actor(28, 2, hidden_cells=(256, 256))
@@ -81,7 +81,7 @@ def test_an_evaluation_does_not_depend_on_the_callers_threads():
     import torch
 
     from spoil_torchrl.modules import make_actor
-    from spoil_torchrl.trainers.precision import intra_op_threads
+    from spoil_torchrl.precision import intra_op_threads
 
     torch.manual_seed(0)
     policy = make_actor(28, 2, hidden_cells=(256, 256))

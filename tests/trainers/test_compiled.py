@@ -10,13 +10,13 @@ import torch
 
 from spoil_torchrl.modules import make_actor
 from spoil_torchrl.objectives import WeightedBCLoss
-from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper, StepEvery
-from spoil_torchrl.trainers.compiled import use_fused_adam
-from spoil_torchrl.trainers.precision import (
+from spoil_torchrl.precision import (
     REDUCED_PRECISION_ERROR,
     matmul_precision,
     matmul_relative_error,
 )
+from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper, StepEvery
+from spoil_torchrl.trainers.compiled import use_fused_adam
 from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
 from tests.trainers.steppers import (
     STEPS,
