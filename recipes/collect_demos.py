@@ -61,25 +61,38 @@ def replay_dataset(cfg: DictConfig) -> None:
     """``replay=<run dir>``: the expert training's trajectory buffer as the dataset ``name``, and its Table H."""
     from pathlib import Path
 
-    from spoil_torchrl.data import episode_stats, generated_path, replay_subsets, stats_table
+    from spoil_torchrl.data import (
+        GENERATED_DATASETS,
+        episode_stats,
+        generated_path,
+        replay_subsets,
+        stats_table,
+    )
+    from spoil_torchrl.experts import zoo_names
     from spoil_torchrl.experts.replay import write_replay_dataset
     from spoil_torchrl.tasks import get_env_task
 
     if not cfg.get("env_id"):
         raise SettingsError("replay=... needs env_id=<the task the expert was trained in>")
     task = get_env_task(cfg.env_id)
+    if cfg.name in GENERATED_DATASETS:
+        raise SettingsError(
+            f"name={cfg.name} is a dataset made from the committed policies; name the replay dataset"
+        )
+    if "safe-high" not in zoo_names(task.env_id):  # its return is the safe-optimal return of the labels
+        raise SettingsError(f"{task.env_id} has no committed safe-high policy: no safe-optimal return")
     run = Path(cfg.replay)
     buffer = run / "replay" if (run / "replay").is_dir() else run
     path = generated_path(cfg.name)
     if path.exists() and not cfg.force:
+        if "replay" not in read_metadata(path):
+            raise SettingsError(f"{path} exists and is not a replay dataset; choose another name")
         log.info(f"{path} exists; force=true makes it again")
     else:
         write_replay_dataset(buffer, path, task.env_id, metadata={"name": cfg.name})
     meta = read_metadata(path)
     episodes = load_episodes(f"generated:{cfg.name}")
     optimal = meta["safe_high_return"]
-    if optimal is None:
-        raise SettingsError(f"{task.env_id} has no committed safe-high policy: no safe-optimal return")
     subsets = replay_subsets(episodes, meta["cost_threshold"], optimal)
     roles = {
         "safe-replay": subsets["safe"],

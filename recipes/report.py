@@ -321,7 +321,7 @@ def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
         raise SystemExit(f"error: {experiment.name} has one configuration: a table, not a figure")
     try:
         statistics = experiment_statistics(experiment)
-    except ImportError as err:  # rliable is an extra
+    except (ImportError, ValueError) as err:  # rliable is an extra; a NaN score cannot be bootstrapped
         statistics = f"(aggregate statistics left out: {err})"
     draw = lambda path: plot_levels(  # noqa: E731
         figure_panels(experiment), experiment.levels, path, level_name=experiment.level

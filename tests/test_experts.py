@@ -512,3 +512,10 @@ def test_num_envs_must_split_the_batch():
         PPOConfig(frames_per_batch=1000, minibatch_size=100, num_envs=3)
     with pytest.raises(ValueError, match="num_envs"):
         PPOConfig(num_envs=0)
+
+
+def test_lockstep_refuses_batches_too_short_for_one_episode(tmp_path):
+    config = PPOConfig(total_frames=4000, frames_per_batch=4000, minibatch_size=500, num_envs=16)
+    with pytest.raises(ValueError, match="250 steps per environment and batch, fewer than one"):
+        _train(tmp_path / "run", config)
+    assert not (tmp_path / "run").exists()  # refused before anything is written

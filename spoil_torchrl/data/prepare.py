@@ -270,9 +270,13 @@ def _base_roles(
     for role, key, offset in (("safe", "n_safe", 0), ("performant", "n_performant", 1)):
         ids, k = labels[role], int(cfg[key])
         if ids.numel() < k:
+            how = (
+                f"cost threshold {cost_threshold}"
+                if role == "safe"
+                else f"scheme {scheme}'s return threshold"
+            )
             raise DatasetError(
-                f"the dataset has {ids.numel()} {role} episodes (threshold {cost_threshold}), fewer than "
-                f"{key}={k}; lower {key}"
+                f"the dataset has {ids.numel()} {role} episodes ({how}), fewer than {key}={k}; lower {key}"
             )
         roles[role] = draw(ids, k, seed=seed + offset)
     unlabeled = labels["unlabeled"]

@@ -47,11 +47,12 @@ Cells = dict[tuple[str, object, str], list[dict]]
 @dataclass
 class Experiment:
     """The finished cells of one experiment: its ``name``, the setting it varies (``level``, ``None`` for a
-    table) and ``cells``."""
+    table) and ``cells``; ``unfinished`` lists the other cells found (run directory, status)."""
 
     name: str
     level: str | None
     cells: Cells = field(default_factory=dict)
+    unfinished: list[tuple[str, str]] = field(default_factory=list)
 
     @property
     def datasets(self) -> list[str]:
@@ -88,7 +89,8 @@ def load_experiment(
     Raises:
         FileNotFoundError: a folder does not exist.
         ValueError: no finished cell; several experiments and no ``name``; one cell's seed twice; cells of one
-            experiment with different levels or training budgets (``config.yaml``'s ``train``).
+            experiment with different levels or training budgets (``config.yaml``'s ``train``), or cells of one
+            dataset made on different software stacks or from different data.
     """
     skipped = [] if skipped is None else skipped
     found: dict[str, list[tuple[Path, dict]]] = defaultdict(list)
@@ -120,7 +122,11 @@ def load_experiment(
         name = next(iter(found))
     if name not in found:
         raise ValueError(f"no finished cell of experiment {name!r} under {where}")
-    return _cells(name, found[name])
+    experiment = _cells(name, found[name])
+    experiment.unfinished = [
+        (str(p.parent), reason) for p, reason in skipped if not reason.startswith("not a cell")
+    ]
+    return experiment
 
 
 def _cells(name: str, runs: list[tuple[Path, dict]]) -> Experiment:
@@ -129,8 +135,22 @@ def _cells(name: str, runs: list[tuple[Path, dict]]) -> Experiment:
         raise ValueError(f"the cells of {name} vary different settings: {sorted(map(str, levels))}")
     budgets: dict[str | None, Path] = {}
     seen: dict[tuple, Path] = {}
+    stacks: dict[str, dict[str, Path]] = defaultdict(dict)
+    files: dict[str, tuple[str, Path]] = {}
     experiment = Experiment(name, levels.pop())
     for path, results in runs:
+        # one dataset's cells come from one simulator: the software stack the run recorded
+        stacks[results["dataset"]].setdefault(json.dumps(results.get("stack"), sort_keys=True), path)
+        fingerprint = (results.get("data") or {}).get(
+            "fingerprint"
+        )  # the file's episodes, whatever the roles
+        if fingerprint is not None:
+            first = files.setdefault(results["dataset"], (fingerprint, path))
+            if first[0] != fingerprint:
+                raise ValueError(
+                    f"the cells of {name} filed as {results['dataset']} were trained on different data: "
+                    f"{first[1].parent} and {path.parent}; give each file its own dataset.name"
+                )
         key = (results["dataset"], results["experiment"]["value"], results["algo"])
         if (*key, results["seed"]) in seen:
             raise ValueError(
@@ -140,6 +160,14 @@ def _cells(name: str, runs: list[tuple[Path, dict]]) -> Experiment:
         seen[(*key, results["seed"])] = path
         budgets.setdefault(train_section(path), path)
         experiment.cells.setdefault(key, []).append(results)
+    for dataset, made_on in stacks.items():
+        if len(made_on) > 1:
+            raise ValueError(
+                f"the cells of {name} on {dataset} were made on {len(made_on)} software stacks (other simulators), "
+                "e.g. "
+                + " and ".join(str(p.parent) for p in made_on.values())
+                + "; report each stack's cells apart"
+            )
     if len(budgets) > 1:
         raise ValueError(
             f"the cells of {name} were trained with different train settings, e.g. "
@@ -231,6 +259,10 @@ def experiment_markdown(experiment: Experiment) -> str:
         lines += [f"**{title}**", ""]
         for metric in METRICS:
             lines += [*_table(rows, levels, algos, metric, experiment.level), ""]
+    if experiment.unfinished:  # a failed (diverged) cell is a result too: say which, not only leave it out
+        lines += [f"Not finished, so not in the tables ({len(experiment.unfinished)}):", ""]
+        lines += [f"- `{where}`: {reason}" for where, reason in experiment.unfinished]
+        lines.append("")
     seeds = sorted({len(group) for group in experiment.cells.values()})
     lines.append(
         f"Seeds per cell: {', '.join(map(str, seeds))}. Each seed contributes the mean of its last evaluations; "
@@ -270,12 +302,12 @@ def experiment_statistics(experiment: Experiment, *, reps: int = 2000, seed: int
 
     metric = "normalized_feasible_return"
     levels, algos = experiment.levels, experiment.algos
-    estimates = {
-        value: interval_estimates(
-            score_matrices(experiment, metric, value), statistics=("iqm",), reps=reps, seed=seed
+    estimates = {}  # a level where no method has every task yet (a sweep still running) shows "-"
+    for value in levels:
+        scores = score_matrices(experiment, metric, value)
+        estimates[value] = (
+            interval_estimates(scores, statistics=("iqm",), reps=reps, seed=seed) if scores else {}
         )
-        for value in levels
-    }
     head = [str(v) if experiment.level else "value" for v in levels]
     lines = [
         "Interquartile mean of the normalised feasible return [95 % stratified-bootstrap interval] over seeds "

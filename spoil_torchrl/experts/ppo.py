@@ -41,6 +41,7 @@ from spoil_torchrl.experts.ppo_update import PPOLearner, ppo_update
 from spoil_torchrl.experts.replay import ReplayRecorder
 from spoil_torchrl.files import write_atomic
 from spoil_torchrl.stack import current_stack
+from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers.checkpoint import load_checkpoint, save_checkpoint
 from spoil_torchrl.trainers.offline import raise_if_stopped, stop_requested
 from spoil_torchrl.trainers.resume import check_resumable
@@ -250,6 +251,16 @@ def train_ppo(
         >>> [line["frames"] for line in log]
         [100, 200]
     """
+    if config.num_envs > 1:  # refused before anything is written
+        if env_id is None:
+            raise ValueError("ppo.num_envs > 1 needs train_ppo(..., env_id=<the task>)")
+        length = get_env_task(env_id).episode_length
+        if config.frames_per_batch // config.num_envs < length:
+            raise ValueError(
+                f"ppo.frames_per_batch / ppo.num_envs = {config.frames_per_batch // config.num_envs} steps per "
+                f"environment and batch, fewer than one {env_id} episode ({length} steps): no episode would "
+                "ever finish (no cost estimate for the multiplier); raise frames_per_batch or lower num_envs"
+            )
     torch.manual_seed(config.seed)
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -280,8 +291,6 @@ def train_ppo(
         unit="frame",
         disable=not progress,
     )
-    if config.num_envs > 1 and env_id is None:
-        raise ValueError("ppo.num_envs > 1 needs train_ppo(..., env_id=<the task>)")
     env = make_env() if config.num_envs == 1 else LockstepCollector(env_id, config.num_envs)
     start = time.perf_counter()
     try:

@@ -247,7 +247,8 @@ def build_fbc(
     """Filtered BC (paper section 5, Table B): NLL on D_P weighted by the estimated safe support 1_S (C_S
     against D_U, the kappa cut on D_S), i.e. BC on the performant transitions inside the safe support.
 
-    ``cfg["support"] = "oracle"`` is an ablation that no method can run on real data: the weight is 1 on D_P's
+    ``cfg["support"] = "oracle"`` (``+algo.support=oracle``; default ``"estimated"``) is an ablation that no
+    method can run on real data: the weight is 1 on D_P's
     trajectories whose true episode cost is within the limit (``constraint``) and 0 elsewhere, i.e. BC on D_P's
     safe trajectories, the filter FBC's estimate approximates. It measures what the estimate's errors cost."""
     support = cfg.get("support", "estimated")

@@ -158,7 +158,7 @@ def finished_already(run_dir: str | os.PathLike, config_yaml: str, resume: bool 
 
     Raises:
         RunDirError: the finished run was made with other settings (a changed sweep that names its cells
-            as before would otherwise pass over runs that are not its own).
+            as before would otherwise pass over runs that are not its own), or on another software stack.
 
     Examples:
         >>> import tempfile
@@ -184,4 +184,11 @@ def finished_already(run_dir: str | os.PathLike, config_yaml: str, resume: bool 
             f"{run_dir}: the run there has finished, with other settings ({', '.join(differ)}); start the new "
             "settings in another directory (another hydra.run.dir or hydra.sweep.dir)"
         )
-    return json.loads((run_dir / "results.json").read_text())
+    results = json.loads((run_dir / "results.json").read_text())
+    recorded = results.get("stack")
+    if recorded is not None and stack_differences(recorded):  # a sweep continued on another simulator
+        raise RunDirError(
+            f"{run_dir}: the run there has finished on another software stack ({stack_label(recorded)}; here "
+            f"{stack_label(current_stack())}); continue the sweep on its own stack or in another hydra.sweep.dir"
+        )
+    return results

@@ -154,13 +154,19 @@ def test_controlled_draw_is_unchanged_where_no_episode_is_over_the_limit():
 
     pools = {p: torch.arange(10) + 10 * i for i, p in enumerate(POOLS)}
     kwargs = dict(n_safe=4, performance=0.5, n_performant=4, safeness=0.5, n_unlabeled=12)
-    cost = torch.cat([torch.zeros(20), torch.full((20,), 100.0)])
     for seed in range(5):
         plain = controlled_mix(pools, **kwargs, seed=seed)
+        # every safe-high / safe-medium episode the draw did not take goes over the limit (and one unsafe-high
+        # episode it did not take stays within it): filtering before the shuffle would change the draw
+        cost = torch.cat([torch.zeros(20), torch.full((20,), 100.0)])
+        taken = torch.cat([plain["safe"], plain["performant"]])
+        untaken_safe = [i for i in range(20) if i not in taken.tolist()]
+        cost[untaken_safe] = 60.0
+        cost[next(i for i in range(20, 30) if i not in taken.tolist())] = 0.0
         limited = controlled_mix(pools, **kwargs, seed=seed, episode_cost=cost, cost_limit=25.0)
-        assert all(torch.equal(plain[k], limited[k]) for k in plain)
+        assert all(torch.equal(plain[k], limited[k]) for k in plain), seed
     with pytest.raises(ValueError, match="together"):
-        controlled_mix(pools, **kwargs, episode_cost=cost)
+        controlled_mix(pools, **kwargs, episode_cost=torch.zeros(40))
 
 
 def test_corruption_replaces_a_share_of_d_s_by_unsafe_episodes_outside_d_s_and_d_p():

@@ -104,3 +104,28 @@ def test_statistics_name_the_improvement_over_each_baseline(tmp_path):
     # SpoilDICE beats BC in every run of every task and level: P = 1 with a collapsed interval
     assert "| BC | 1.00 [1.00, 1.00] |" in text
     assert "| SpoilDICE | 0.70 [" in text  # its IQM over 2 seeds x 2 tasks at each level: (0.6+0.7+0.7+0.8)/4
+
+
+def test_a_sweep_still_running_reports_what_it_has(tmp_path):
+    """Task b has no cell at level 0.75 yet: its tables show "-" there and the statistics skip that level."""
+    pytest.importorskip("rliable")
+    from spoil_torchrl.eval.experiments import experiment_statistics
+
+    for dataset, value in (("a", 0.25), ("a", 0.75), ("b", 0.25)):
+        for seed in (0, 1):
+            _cell(tmp_path, dataset, value, "spoildice", seed, 0.5 + 0.1 * seed, 0.5)
+    experiment = load_experiment([tmp_path])
+    text = experiment_statistics(experiment, reps=20)
+    assert "| SpoilDICE | 0.55 [0.50, 0.60] | - |" in text  # 0.75: no method has both tasks
+    assert "| SpoilDICE | **0.55 ± 0.05** | - |" in experiment_markdown(experiment)  # the average over tasks
+
+
+def test_cells_of_one_dataset_from_two_stacks_or_two_files_are_refused(tmp_path):
+    _cell(tmp_path / "s", "a", 0.25, "bc", 0, 0.5, 0.5, stack={"mujoco": "2.3.7"})
+    _cell(tmp_path / "s", "a", 0.75, "bc", 0, 0.5, 0.5, stack={"mujoco": "3.17.0"})
+    with pytest.raises(ValueError, match="made on 2 software stacks"):
+        load_experiment([tmp_path / "s"])
+    _cell(tmp_path / "f", "a", 0.25, "bc", 0, 0.5, 0.5, data={"fingerprint": "x"})
+    _cell(tmp_path / "f", "a", 0.75, "bc", 0, 0.5, 0.5, data={"fingerprint": "y"})
+    with pytest.raises(ValueError, match="trained on different data"):
+        load_experiment([tmp_path / "f"])

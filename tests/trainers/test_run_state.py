@@ -285,3 +285,29 @@ def test_a_refused_claim_leaves_the_directory_as_it_was(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(RunDirError, match="is a file"):
         claim_run_dir(tmp_path / "file")
+
+
+def test_resume_auto_passes_over_a_finished_run_only_with_its_settings_and_stack(tmp_path):
+    import json
+
+    import pytest
+
+    from spoil_torchrl.stack import current_stack
+    from spoil_torchrl.trainers.resume import finished_already
+    from spoil_torchrl.trainers.run_dir import RunDirError
+
+    run = tmp_path / "cell"
+    run.mkdir()
+    (run / "config.yaml").write_text("seed: 0\n")
+    (run / "results.json").write_text(json.dumps({"status": "finished", "stack": current_stack()}))
+    assert finished_already(run, "seed: 0\n", "auto")["status"] == "finished"
+    assert (
+        finished_already(run, "seed: 0\n", False) is None and finished_already(run, "seed: 0\n", True) is None
+    )
+    (run / "results.json").write_text(
+        json.dumps({"status": "finished", "stack": dict(current_stack(), mujoco="0.1")})
+    )
+    with pytest.raises(RunDirError, match="finished on another software stack"):
+        finished_already(run, "seed: 0\n", "auto")
+    (run / "results.json").write_text(json.dumps({"status": "failed"}))
+    assert finished_already(run, "seed: 0\n", "auto") is None  # a failed cell is run again
