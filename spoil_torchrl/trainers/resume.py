@@ -27,6 +27,9 @@ from spoil_torchrl.trainers.run_dir import RunDirError, run_status
 
 #: Settings that may change between a run and its resumption (they do not change what is trained).
 RESUMABLE_CHANGES = ("progress",)
+#: Settings some runs record and others do not, with the value a run without one had (the versions that wrote
+#: ``algo.support: estimated`` into every FBC run's settings, before it became an added key).
+IMPLIED_SETTINGS = {"algo.support": "estimated"}
 
 
 def pretraining_fingerprint(buffers, diagnostics: Mapping[str, float]) -> str:
@@ -62,6 +65,8 @@ def settings_differ(
         >>> old = "seed: 0\\ntrain:\\n  lr: 0.1\\nprogress: true"
         >>> settings_differ(old, "seed: 0\\ntrain:\\n  lr: 0.2\\nprogress: false")
         ['train.lr']
+        >>> settings_differ("algo:\\n  kappa: 0.01", "algo:\\n  kappa: 0.01\\n  support: estimated")  # implied
+        []
     """
 
     def flat(tree, prefix=""):
@@ -77,7 +82,8 @@ def settings_differ(
 
     old, new = flat(load(old_yaml)), flat(load(new_yaml))
     keys = sorted(set(old) | set(new))
-    return [k for k in keys if old.get(k) != new.get(k) and k.split(".")[0] not in allowed]
+    value = lambda settings, k: settings.get(k, IMPLIED_SETTINGS.get(k))  # noqa: E731
+    return [k for k in keys if value(old, k) != value(new, k) and k.split(".")[0] not in allowed]
 
 
 def check_resumable(
