@@ -131,10 +131,10 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
     )
     update = ppo_module.ppo_update
 
-    def killed_in_batch_four(learner, batch, config, index, cost):
+    def killed_in_batch_four(learner, batch, config, index, cost, **kwargs):
         if index == 3:  # after batch 3 was logged, but the last training state is batch 2's
             raise KeyboardInterrupt("killed")
-        update(learner, batch, config, index, cost)
+        return update(learner, batch, config, index, cost, **kwargs)
 
     monkeypatch.setattr(ppo_module, "ppo_update", killed_in_batch_four)
     with pytest.raises(KeyboardInterrupt):
@@ -200,10 +200,11 @@ def test_sigterm_keeps_the_batch_it_arrived_in_and_resumes_from_it(tmp_path, mon
     _train(tmp_path / "whole", _tiny_config(checkpoint_every=4))
     update = ppo_module.ppo_update
 
-    def sigterm_in_batch_two(learner, batch, config, index, cost):
-        update(learner, batch, config, index, cost)
+    def sigterm_in_batch_two(learner, batch, config, index, cost, **kwargs):
+        result = update(learner, batch, config, index, cost, **kwargs)
         if index == 1:  # what stop_on_signals' handler records when SIGTERM arrives
             monkeypatch.setattr(offline, "_stop_reason", "signal SIGTERM")
+        return result
 
     monkeypatch.setattr(ppo_module, "ppo_update", sigterm_in_batch_two)
     with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
@@ -519,3 +520,36 @@ def test_lockstep_refuses_batches_too_short_for_one_episode(tmp_path):
     with pytest.raises(ValueError, match="250 steps per environment and batch, fewer than one"):
         _train(tmp_path / "run", config)
     assert not (tmp_path / "run").exists()  # refused before anything is written
+
+
+@needs_safety_gymnasium
+def test_omnisafe_options_stop_epochs_on_kl_decay_the_actor_rate_and_standardise_separately(
+    tmp_path, monkeypatch
+):
+    from spoil_torchrl.experts import ppo as ppo_module
+    from spoil_torchrl.experts import ppo_update as update_module
+
+    seen = {"lr": [], "advantage_std": []}
+    original = update_module.ppo_update
+
+    def watched(learner, batch, config, index, cost, *, batches=1):
+        epochs = original(learner, batch, config, index, cost, batches=batches)
+        seen["lr"].append(learner.optim.param_groups[0]["lr"])
+        seen["advantage_std"].append(float(batch["advantage"].std()))
+        return epochs
+
+    monkeypatch.setattr(ppo_module, "ppo_update", watched)
+    config = _tiny_config(
+        epochs=20, actor_lr=3e-2, target_kl=1e-6, lr_decay=True, advantage_standardization="separate"
+    )
+    log = _train(tmp_path / "run", config)
+    assert [line["epochs"] for line in log] == [1, 1, 1, 1]  # a large step passes a tiny KL target at once
+    assert seen["lr"] == pytest.approx([3e-2 * (1 - i / 4) for i in range(4)])
+    # lambda > 0 (cost limit 0): the combination of two standardised advantages is not standardised again
+    assert any(abs(std - 1.0) > 1e-3 for std in seen["advantage_std"])
+    with pytest.raises(ValueError, match="expected combined or separate"):
+        PPOConfig(advantage_standardization="both")
+    with pytest.raises(ValueError, match="target_kl"):
+        PPOConfig(target_kl=0.0)
+    with pytest.raises(ValueError, match="lr_decay"):
+        PPOConfig(lr_decay="yes")

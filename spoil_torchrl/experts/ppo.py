@@ -59,6 +59,11 @@ class PPOConfig:
     both critics (OmniSafe's ``obs_normalize``): the statistics of every batch so far, fixed within a batch
     (updated after its PPO update, so a batch's log-probabilities are computed with the statistics it was
     collected with), saved inside the policy (:func:`~spoil_torchrl.modules.with_observation_norm`).
+    Three of OmniSafe's PPO-Lagrangian settings are options (off by default, as the committed experts were
+    trained): ``advantage_standardization="separate"`` standardises the reward and the cost advantages each on
+    its own before they are combined (``"combined"``: the combined one); ``target_kl`` stops a batch's epochs
+    early once the policy's estimated KL divergence from the one that collected it passes it (OmniSafe: 0.02);
+    ``lr_decay`` lowers the actor's learning rate linearly to 0 over the run.
     ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
     (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
     TorchRL environment); ``frames_per_batch`` must split evenly over them.
@@ -84,6 +89,9 @@ class PPOConfig:
     normalize_observations: bool = False
     record_episodes: int = 0
     num_envs: int = 1
+    advantage_standardization: str = "combined"
+    target_kl: float | None = None
+    lr_decay: bool = False
     seed: int = 0
     extra: dict = field(default_factory=dict)
 
@@ -104,7 +112,18 @@ class PPOConfig:
                 f"ppo.minibatch_size = {self.minibatch_size} is larger than ppo.frames_per_batch = "
                 f"{self.frames_per_batch}"
             )
-        for name in ("lagrangian", "normalize_observations"):  # Hydra keeps "no" as a string: always true
+        if self.advantage_standardization not in ("combined", "separate"):
+            raise ValueError(
+                f"ppo.advantage_standardization = {self.advantage_standardization!r}: expected combined or separate"
+            )
+        if self.target_kl is not None and (
+            isinstance(self.target_kl, bool)
+            or not isinstance(self.target_kl, (int, float))
+            or not math.isfinite(self.target_kl)
+            or self.target_kl <= 0
+        ):
+            raise ValueError(f"ppo.target_kl = {self.target_kl!r}: expected null or a finite number > 0")
+        for name in ("lagrangian", "normalize_observations", "lr_decay"):  # Hydra keeps "no" as a string
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ppo.{name} = {getattr(self, name)!r}: expected true or false")
         for name in (
@@ -320,11 +339,13 @@ def train_ppo(
                 )
             if recorder is not None:
                 recorder.record(batch, index)
-            ppo_update(learner, batch, config, index, ep_cost)
+            epochs = ppo_update(learner, batch, config, index, ep_cost, batches=batches)
             learner.observe(batch["observation"])  # the next batch's standardisation
             line.update(
                 lagrange=float(learner.lagrange.detach()), seconds=elapsed + time.perf_counter() - start
             )
+            if config.target_kl is not None:  # how many of its epochs the batch ran before the KL stop
+                line["epochs"] = epochs
             log.append(line)
             with open(run_dir / "log.jsonl", "a") as f:
                 f.write(json.dumps(line) + "\n")

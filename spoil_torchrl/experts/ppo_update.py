@@ -116,10 +116,20 @@ def _check_finite(what: str, value: torch.Tensor, batch: int) -> None:
     check_finite(what, value.detach(), f"batch {batch}", advice)
 
 
-def ppo_update(learner: PPOLearner, batch: TensorDict, config: PPOConfig, index: int, cost: float) -> None:
+def _standardized(x: torch.Tensor) -> torch.Tensor:
+    return (x - x.mean()) / (x.std() + 1e-8)
+
+
+def ppo_update(
+    learner: PPOLearner, batch: TensorDict, config: PPOConfig, index: int, cost: float, *, batches: int = 1
+) -> int:
     """One batch's update: the multiplier's Adam step on the batch's mean episode cost ``cost`` (skipped
     without a finished episode), the advantages of the penalised objective, then ``epochs`` passes of clipped
-    PPO over minibatches (actor, critic and cost critic each clipped to ``max_grad_norm``)."""
+    PPO over minibatches (actor, critic and cost critic each clipped to ``max_grad_norm``). With
+    ``config.target_kl``, the passes stop after the first whose end finds the estimated KL divergence of the
+    policy from the batch's own, the mean of ``log pi_old(a|s) - log pi(a|s)`` over the batch's actions, above
+    it. With ``config.lr_decay``, the actor's learning rate is ``actor_lr * (1 - index / batches)``. Returns
+    the number of passes made."""
     with torch.no_grad():
         learner.reward_gae(batch)
         learner.cost_gae(batch)
@@ -130,17 +140,26 @@ def ppo_update(learner: PPOLearner, batch: TensorDict, config: PPOConfig, index:
         with torch.no_grad():
             learner.lagrange.clamp_(min=0.0)
     lagrange = float(learner.lagrange.detach())
-    advantage = batch["advantage"]
+    advantage, cost_advantage = batch["advantage"], batch["cost_advantage"]
+    if config.advantage_standardization == "separate":  # OmniSafe: each standardised, then combined
+        advantage, cost_advantage = _standardized(advantage), _standardized(cost_advantage)
     if config.lagrangian:
-        advantage = (advantage - lagrange * batch["cost_advantage"]) / (1.0 + lagrange)
-    batch["advantage"] = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+        advantage = (advantage - lagrange * cost_advantage) / (1.0 + lagrange)
+    batch["advantage"] = (
+        _standardized(advantage) if config.advantage_standardization == "combined" else advantage
+    )
+    if config.lr_decay:
+        learner.optim.param_groups[0]["lr"] = config.actor_lr * (1.0 - index / batches)
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(batch.numel()),
         sampler=SamplerWithoutReplacement(),
         batch_size=config.minibatch_size,
     )
-    buffer.extend(batch.reshape(-1))
+    flat = batch.reshape(-1)
+    buffer.extend(flat)
+    epochs = 0
     for _ in range(config.epochs):
+        epochs += 1
         for _ in range(batch.numel() // config.minibatch_size):
             mb = buffer.sample()
             terms = learner.loss(mb)
@@ -155,5 +174,15 @@ def ppo_update(learner: PPOLearner, batch: TensorDict, config: PPOConfig, index:
             for group in learner.optim.param_groups:  # actor, critic and cost critic clipped separately
                 nn.utils.clip_grad_norm_(group["params"], config.max_grad_norm)
             learner.optim.step()
+        if config.target_kl is not None and _kl_from_batch_policy(learner, flat) > config.target_kl:
+            break
     for name, param in learner.named_parameters():
         _check_finite(f"parameter {name}", param, index)
+    return epochs
+
+
+def _kl_from_batch_policy(learner: PPOLearner, batch: TensorDict) -> float:
+    """The sample estimate of KL(pi_old || pi) on the batch's actions, pi_old the policy that collected them."""
+    with torch.no_grad():
+        log_prob = learner.actor.get_dist(batch.select("observation").clone()).log_prob(batch["action"])
+        return float((batch["action_log_prob"] - log_prob.reshape(batch["action_log_prob"].shape)).mean())
