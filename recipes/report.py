@@ -27,7 +27,6 @@ marker per algorithm on every panel, one legend outside the panels).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from collections import defaultdict
@@ -36,10 +35,9 @@ from pathlib import Path
 import torch
 
 from spoil_torchrl.eval import mean_stderr
-from spoil_torchrl.eval.experiments import train_section
+from spoil_torchrl.eval.experiments import finished_results, train_section
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
 from spoil_torchrl.stack import stack_label, stack_name
-from spoil_torchrl.trainers.run_dir import run_status
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
 
@@ -56,22 +54,9 @@ def load_runs(
     runs: dict[tuple[str, str], list[dict]] = defaultdict(list)
     found: dict[tuple[str, str, int], list[tuple[float, Path, dict]]] = defaultdict(list)
     skipped = [] if skipped is None else skipped
-    for folder in folders:
-        if not folder.exists():
-            raise FileNotFoundError(f"{folder}: no such folder")
-        for path in sorted(folder.rglob("results.json")):
-            try:
-                results = json.loads(path.read_text())
-            except ValueError as err:
-                skipped.append((path, f"unreadable ({err})"))
-                continue
-            status = run_status(path.parent, results)
-            if status != "finished":
-                error = results.get("error")  # a diverged or crashed run says why it failed
-                skipped.append((path, status if error is None else f"{status} ({error})"))
-                continue
-            key = (results["dataset"], results["algo"], results["seed"])
-            found[key].append((path.stat().st_mtime, path, results))
+    for path, results in finished_results(folders, skipped):
+        key = (results["dataset"], results["algo"], results["seed"])
+        found[key].append((path.stat().st_mtime, path, results))
     _refuse_mixed_data(found)
     budgets: dict[str, dict[str | None, Path]] = defaultdict(dict)
     for key, copies in sorted(found.items(), key=lambda item: str(item[0])):

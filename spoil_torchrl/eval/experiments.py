@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import math
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,6 +79,30 @@ def train_section(results_path: Path) -> str | None:
     return None if train is None else OmegaConf.to_yaml(train)
 
 
+def finished_results(folders: Sequence[str | Path], skipped: list) -> Iterator[tuple[Path, dict]]:
+    """``(path, results)`` of every finished run's ``results.json`` under ``folders``, sorted per folder; the
+    others are appended to ``skipped`` as ``(path, reason)`` (unreadable, or their status and error).
+
+    Raises:
+        FileNotFoundError: a folder does not exist.
+    """
+    for folder in map(Path, folders):
+        if not folder.exists():
+            raise FileNotFoundError(f"{folder}: no such folder")
+        for path in sorted(folder.rglob("results.json")):
+            try:
+                results = json.loads(path.read_text())
+            except ValueError as err:
+                skipped.append((path, f"unreadable ({err})"))
+                continue
+            status = run_status(path.parent, results)
+            if status != "finished":
+                error = results.get("error")  # a diverged or crashed run says why it failed
+                skipped.append((path, status if error is None else f"{status} ({error})"))
+                continue
+            yield path, results
+
+
 def load_experiment(
     folders: Sequence[str | Path], *, name: str | None = None, skipped: list | None = None
 ) -> Experiment:
@@ -94,23 +118,11 @@ def load_experiment(
     """
     skipped = [] if skipped is None else skipped
     found: dict[str, list[tuple[Path, dict]]] = defaultdict(list)
-    for folder in map(Path, folders):
-        if not folder.exists():
-            raise FileNotFoundError(f"{folder}: no such folder")
-        for path in sorted(folder.rglob("results.json")):
-            try:
-                results = json.loads(path.read_text())
-            except ValueError as err:
-                skipped.append((path, f"unreadable ({err})"))
-                continue
-            status = run_status(path.parent, results)
-            if status != "finished":
-                error = results.get("error")
-                skipped.append((path, status if error is None else f"{status} ({error})"))
-            elif "experiment" not in results:
-                skipped.append((path, "not a cell of an experiment (started without experiment=...)"))
-            else:
-                found[results["experiment"]["name"]].append((path, results))
+    for path, results in finished_results(folders, skipped):
+        if "experiment" not in results:
+            skipped.append((path, "not a cell of an experiment (started without experiment=...)"))
+        else:
+            found[results["experiment"]["name"]].append((path, results))
     where = ", ".join(map(str, folders))
     if name is None:
         if len(found) > 1:
