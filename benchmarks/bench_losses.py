@@ -32,7 +32,13 @@ from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from spoil_torchrl.precision import matmul_precision, matmul_relative_error
 from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
-from spoil_torchrl.trainers.compiled import detached, update_gradients
+from spoil_torchrl.trainers.compiled import (
+    detached,
+    pure_losses,
+    step_inputs,
+    step_parameters,
+    update_gradients,
+)
 from spoil_torchrl.trainers.vectorized import VectorizedStepper
 
 
@@ -167,10 +173,10 @@ def step_flops(reference: ReferenceStep, batch: TensorDict) -> int:
 
 def compiled_form_flops(compiled: CompiledLibraryStep, batch: TensorDict) -> int:
     """FLOPs of the compiled step's update (its pure function run eagerly): nu runs once fewer on the batch."""
-    forms = compiled.stepper.forms
-    params = detached({name: form.parameters() for name, form in forms.items()})
-    inputs = {name: form.inputs(batch.clone()) for name, form in forms.items()}
-    return count_flops(lambda: update_gradients(forms)(params, inputs))
+    losses = compiled.stepper.losses
+    params = detached(step_parameters(losses))
+    inputs = step_inputs(losses, pure_losses(losses), batch.clone())
+    return count_flops(lambda: update_gradients(losses)(params, inputs))
 
 
 def matmul_rate(batch_size: int, cells: list[int], obs_dim: int, seconds: float = 1.0) -> float:

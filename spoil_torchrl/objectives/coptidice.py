@@ -8,22 +8,21 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule, dispatch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.objectives import LossModule
 
+from spoil_torchrl.objectives.dice import DICELoss, state_terms
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
     dice_advantage,
     effective_sample_size,
     log_mean_exp,
-    nu_gradient_penalty,
     self_normalized_weights,
 )
 from spoil_torchrl.objectives.keys import get_role
-from spoil_torchrl.objectives.nu_values import StateValues
+from spoil_torchrl.objectives.pure import Tensors
 
 #: Smallest temperature of the cost upper bound (the official code's ``exp(tau) + 1e-6``).
 TAU_MIN = 1e-6
@@ -219,7 +218,7 @@ def _inverse_softplus(x: float) -> float:
     return x + math.log(-math.expm1(-x))
 
 
-class COptiDICELoss(StateValues, LossModule):
+class COptiDICELoss(DICELoss):
     r"""COptiDICE (Lee et al., 2022): the constrained DICE dual over :math:`(\nu, \lambda)` and the cost upper bound
     over :math:`(\chi, \tau)`, on the unlabeled role's true reward and cost.
 
@@ -234,7 +233,7 @@ class COptiDICELoss(StateValues, LossModule):
 
     * ``loss_nu``: :func:`coptidice_dual` at :math:`w^* =` :func:`coptidice_weight` :math:`(e_{\nu,\lambda})`, plus
       a gradient penalty :math:`c\,E[\lVert \nabla_s \nu \rVert^2]` (Table J: 10; the house form,
-      :func:`~spoil_torchrl.objectives.functional.nu_gradient_penalty`, where the official code penalises
+      :func:`~spoil_torchrl.objectives.dice.state_terms`, where the official code penalises
       :math:`\max(0, \lVert\nabla\nu\rVert - 5)^2` on init-data interpolations with :math:`10^{-5}`).
     * ``loss_chi``: the cost upper bound (``cost_ub_epsilon`` :math:`= \epsilon > 0`):
       :func:`cost_bound_objective` of :func:`cost_flow_residual` (:math:`w^*` detached, :math:`\tau` detached),
@@ -387,6 +386,8 @@ class COptiDICELoss(StateValues, LossModule):
         self.cost_limit = float(cost_limit)
         self.alpha = float(alpha)
         self.cost_ub_epsilon = float(cost_ub_epsilon)
+        if self.cost_ub_epsilon > 0:  # chi is trained and penalised after nu
+            self.penalised = ("points", "chi_points")
 
     @property
     def lagrange(self) -> torch.Tensor:
@@ -398,21 +399,28 @@ class COptiDICELoss(StateValues, LossModule):
         """:math:`\\tau = \\mathrm{softplus}(\\theta_\\tau) + 10^{-6}` (differentiable in ``tau_param``)."""
         return tau_of(self.tau_param)
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
+    functional_params = ("nu_network_params", "chi_network_params")
+
+    @property
+    def dual_role(self) -> NestedKey:
+        return self.tensor_keys.unlabeled
 
     @property
     def in_keys(self) -> list[NestedKey]:
         return self._role_in_keys(self.tensor_keys.unlabeled, self.tensor_keys.reward, self.tensor_keys.cost)
 
-    def _chi(self, states: dict[NestedKey, torch.Tensor]) -> torch.Tensor:
-        return self._values("chi_network", states)
+    def term_parameters(self) -> dict[str, nn.Parameter]:
+        chi = self.state_network("chi_network").parameters(self.chi_network_params)
+        return {
+            **super().term_parameters(),
+            **{f"chi.{k}": v for k, v in chi.items()},
+            "lagrange_param": self.lagrange_param,
+            "tau_param": self.tau_param,
+        }
 
-    def _value_penalty(self, fn, init: dict, current: dict, following: dict) -> torch.Tensor | None:
-        """The weighted gradient penalty of the state network ``fn`` (``None`` when it is off)."""
-        if self.gradient_penalty > 0:
-            return self.gradient_penalty * nu_gradient_penalty(fn, init, current, following)
-        return None
+    def check_compilable(self) -> None:
+        super().check_compilable()
+        self.state_network("chi_network").check_compilable()
 
     def losses(
         self,
@@ -429,8 +437,7 @@ class COptiDICELoss(StateValues, LossModule):
         """The four losses and the diagnostics (the output keys), the advantage and the self-normalised weights
         of the policy extraction, from nu's (and chi's) values
         at the initial, current and next states and their weighted gradient penalties (``None``: off; chi's
-        values ``None`` when ``cost_ub_epsilon`` is 0). :meth:`forward` and the compiled update step both call
-        it."""
+        values ``None`` when ``cost_ub_epsilon`` is 0). :meth:`terms` calls it."""
         init_nu, nu, next_nu = nu_values
         advantage = dice_advantage(
             reward - lagrange.detach() * cost, nu, bellman_backup(next_nu, terminated, self.gamma)
@@ -481,37 +488,39 @@ class COptiDICELoss(StateValues, LossModule):
             }
         return outputs, advantage, normalized
 
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Compute the four losses and write the weights into ``tensordict[unlabeled]``."""
+    def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
+        """The dual's inputs (:meth:`DICELoss.inputs`; the penalty points drawn for nu, then for chi) and the
+        true reward and cost of the unlabeled transitions."""
         keys = self.tensor_keys
-        data = get_role(tensordict, keys.unlabeled)
-        transitions = self._transitions(tensordict, keys.unlabeled)
-        batch_shape, init, current, following, terminated = transitions
-        n = batch_shape.numel()
+        out = super().inputs(tensordict)
+        data = get_role(tensordict, self.dual_role)
+        n = data.batch_size.numel()
+        return out | {"reward": data.get(keys.reward).reshape(n), "cost": data.get(keys.cost).reshape(n)}
 
-        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
-        nu_penalty = self._value_penalty(self._nu, init, current, following)
+    def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
+        """The four losses and the diagnostics (:meth:`losses`); the self-normalised weights and the advantage
+        go into ``produced``."""
+        init_nu, nu, next_nu, nu_penalty = self.nu_terms(params, x)
+        on = self.gradient_penalty > 0
         chi_values, chi_penalty = None, None
         if self.cost_ub_epsilon > 0:
-            chi_values = self._on_transitions("chi_network", transitions)
-            chi_penalty = self._value_penalty(self._chi, init, current, following)
-        reward = data.get(keys.reward).reshape(n).detach().to(nu.dtype)
-        cost = data.get(keys.cost).reshape(n).detach().to(nu.dtype)
-        outputs, advantage, normalized = self.losses(
+            chi_params = {k.removeprefix("chi."): v for k, v in params.items() if k.startswith("chi.")}
+            *chi_values, chi_penalty = state_terms(
+                self.state_network("chi_network"), chi_params, x, x.get("chi_points"), self.gradient_penalty
+            )
+            chi_penalty = chi_penalty if on else None
+        dtype = nu.dtype
+        outputs, advantage, weights = self.losses(
             (init_nu, nu, next_nu),
-            nu_penalty,
-            chi_values,
+            nu_penalty if on else None,
+            None if chi_values is None else tuple(chi_values),
             chi_penalty,
-            reward,
-            cost,
-            terminated,
-            self.lagrange,
-            self.tau,
+            x["reward"].detach().to(dtype),
+            x["cost"].detach().to(dtype),
+            x["terminated"],
+            lagrange_of(params["lagrange_param"]),
+            tau_of(params["tau_param"]),
         )
-        with torch.no_grad():
-            data.set(keys.weight, normalized.reshape(*batch_shape, 1))
-            data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
-        out = TensorDict(outputs, [])
-        self._clear_weakrefs(tensordict, out, "nu_network_params", "chi_network_params")
-        return out
+        self._produce(produced, weights, advantage)
+        total = sum(value for key, value in outputs.items() if key.startswith("loss_"))
+        return total, outputs

@@ -5,21 +5,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule, dispatch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
 
+from spoil_torchrl.objectives.dice import DICELoss
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
     dice_advantage,
     log_mean_exp,
-    nu_gradient_penalty,
     self_normalized_weights,
     weight_diagnostics,
 )
 from spoil_torchrl.objectives.keys import get_role
-from spoil_torchrl.objectives.nu_values import StateValues
+from spoil_torchrl.objectives.pure import Tensors
 
 
 def demodice_dual(init_nu: torch.Tensor, advantage: torch.Tensor, alpha: float, gamma: float) -> torch.Tensor:
@@ -76,7 +75,7 @@ def demodice_diagnostics(
         }
 
 
-class DemoDICELoss(StateValues, LossModule):
+class DemoDICELoss(DICELoss):
     r"""DemoDICE's dual objective over :math:`\nu` (Kim et al., 2022), regularised toward one role's data.
 
     DemoDICE (`reference code <https://github.com/geon-hyeong/imitation-dice>`_) solves
@@ -115,7 +114,7 @@ class DemoDICELoss(StateValues, LossModule):
 
     * ``loss_nu`` is :func:`demodice_dual` plus a gradient penalty :math:`c\,E[\lVert \nabla_s \nu(\tilde s)
       \rVert^2]` on the role's states, on states between initial and role states and between :math:`s` and
-      :math:`s'` (:func:`~spoil_torchrl.objectives.functional.nu_gradient_penalty`; the reference interpolates
+      :math:`s'` (:func:`~spoil_torchrl.objectives.dice.state_terms`; the reference interpolates
       with its expert states, which this one-role dual does not have, as in SpoilDICE).
 
     The self-normalised weights :math:`\tilde w = w^*/\overline{w^*}` (batch mean 1, computed after subtracting
@@ -223,36 +222,30 @@ class DemoDICELoss(StateValues, LossModule):
         keys = {"regularization": regularization, "reward": reward}
         self.set_keys(**{name: key for name, key in keys.items() if key is not None})
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
+    @property
+    def dual_role(self) -> NestedKey:
+        return self.tensor_keys.regularization
 
     @property
     def in_keys(self) -> list[NestedKey]:
         return self._role_in_keys(self.tensor_keys.regularization, self.tensor_keys.reward)
 
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Compute ``loss_nu`` and write the weights into ``tensordict[regularization]``."""
-        keys = self.tensor_keys
-        data = get_role(tensordict, keys.regularization)
-        transitions = self._transitions(tensordict, keys.regularization)
-        batch_shape, init, current, following, terminated = transitions
-        n = batch_shape.numel()
+    def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
+        """The dual's inputs (:meth:`DICELoss.inputs`) and the reward :math:`\\log d_P/d_R` of the role."""
+        data = get_role(tensordict, self.dual_role)
+        reward = data.get(self.tensor_keys.reward).reshape(data.batch_size.numel())
+        return {**super().inputs(tensordict), "reward": reward}
 
-        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
-        reward = data.get(keys.reward).reshape(n).detach().to(nu.dtype)  # data of a frozen discriminator
-        advantage = dice_advantage(reward, nu, bellman_backup(next_nu, terminated, self.gamma))
-        loss_nu = demodice_dual(init_nu, advantage, self.alpha, self.gamma)
-        if self.gradient_penalty > 0:
-            penalty = nu_gradient_penalty(self._nu, init, current, following)
-            loss_nu = loss_nu + self.gradient_penalty * penalty
-
+    def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
+        """``loss_nu`` (with the gradient penalty) and the diagnostics; the self-normalised weights and the
+        advantage go into ``produced``."""
+        init_nu, current_nu, next_nu, penalty = self.nu_terms(params, x)
+        reward = x["reward"].detach().to(current_nu.dtype)  # data of a frozen discriminator
+        advantage = dice_advantage(reward, current_nu, bellman_backup(next_nu, x["terminated"], self.gamma))
+        loss_nu = demodice_dual(init_nu, advantage, self.alpha, self.gamma) + penalty
         with torch.no_grad():
-            log_weights = demodice_log_weight(advantage, self.alpha)
+            log_weights = demodice_log_weight(advantage.detach(), self.alpha)
             weights = self_normalized_weights(log_weights)
-            data.set(keys.weight, weights.reshape(*batch_shape, 1))
-            data.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
-            diagnostics = demodice_diagnostics(init_nu, advantage, log_weights, weights, reward)
-            out = TensorDict({"loss_nu": loss_nu, **diagnostics}, [])
-        self._clear_weakrefs(tensordict, out, "nu_network_params")
-        return out
+        self._produce(produced, weights, advantage)
+        diagnostics = demodice_diagnostics(init_nu, advantage, log_weights, weights, reward)
+        return loss_nu, {"loss_nu": loss_nu, **diagnostics}

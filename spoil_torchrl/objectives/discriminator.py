@@ -10,19 +10,15 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule, TensorDictModuleBase, dispatch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
+from torch import nn
+from torch.func import grad
 
-from spoil_torchrl.objectives.functional import (
-    check_reduction,
-    gradient_penalty,
-    input_gradient_norms,
-    interpolate,
-    reduce,
-)
+from spoil_torchrl.objectives.functional import check_reduction, gradient_penalty, interpolate, reduce
 from spoil_torchrl.objectives.keys import get_role, role_key
+from spoil_torchrl.objectives.pure import PureLoss, PureNetwork, Tensors
 
 
 def logistic_ratio_losses(
@@ -79,8 +75,7 @@ def discriminator_outputs(
 ) -> dict[str, torch.Tensor]:
     """:class:`PUDiscriminatorLoss`'s outputs from the logits, gradient penalty aside: ``loss_positive`` and
     ``loss_unlabeled`` (Eq. 16/17, or the non-negative PU risk with ``class_prior``) and the detached
-    ``logit_positive``, ``logit_unlabeled`` and ``accuracy``. The LossModule and the compiled update step both
-    call it.
+    ``logit_positive``, ``logit_unlabeled`` and ``accuracy``. :meth:`PUDiscriminatorLoss.terms` calls it.
 
     Examples:
         >>> out = discriminator_outputs(torch.ones(2), -torch.ones(2), None, "mean")
@@ -111,6 +106,7 @@ def discriminator_penalty_points(
     Random: one permutation, then per key one uniform draw per row for each kind.
 
     Examples:
+        >>> from tensordict import TensorDict
         >>> role = TensorDict({"observation": torch.zeros(4, 3)}, [4])
         >>> [p.shape for p in discriminator_penalty_points(role[:2], role, ["observation"])]
         [torch.Size([6, 3])]
@@ -137,6 +133,7 @@ class LogRatio(TensorDictModuleBase):
     transitions before training :class:`~spoil_torchrl.objectives.SpoilDICELoss`.
 
     Examples:
+        >>> from tensordict import TensorDict
         >>> from tensordict.nn import TensorDictModule
         >>> disc = TensorDictModule(lambda obs: 2 * obs, in_keys=["observation"], out_keys=["logit"])
         >>> td = TensorDict({"observation": torch.ones(2, 1)}, [2])
@@ -168,7 +165,7 @@ class LogRatio(TensorDictModuleBase):
         return tensordict
 
 
-class PUDiscriminatorLoss(LossModule):
+class PUDiscriminatorLoss(PureLoss):
     r"""Trains a discriminator separating a positive role (performant or safe) from the unlabeled role.
 
     Implements Eq. (16) (``positive="performant"``, giving :math:`\hat C_P`) and Eq. (17)
@@ -269,9 +266,6 @@ class PUDiscriminatorLoss(LossModule):
         self.reduction = check_reduction(reduction)
         self.set_keys(positive=positive, unlabeled=unlabeled)
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     def frozen_network(self) -> TensorDictModule:
         """A copy of the discriminator with its current weights, detached from this loss: training the loss
         further does not change it. (TorchRL's ``get_stateful_net(copy=True)`` copies the module but puts the
@@ -296,43 +290,61 @@ class PUDiscriminatorLoss(LossModule):
         roles = (self.tensor_keys.positive, self.tensor_keys.unlabeled)
         return [role_key(role, key) for role in roles for key in keys]
 
-    def _logits(self, inputs: TensorDictBase) -> torch.Tensor:
-        with self.discriminator_network_params.to_module(self.discriminator_network):
-            out = self.discriminator_network(inputs)
-        return out.get(self.discriminator_network.out_keys[0]).reshape(-1)
+    functional_params = ("discriminator_network_params",)
 
-    # Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
-    @torch.compiler.disable
-    def _penalty(self, positive: TensorDictBase, unlabeled: TensorDictBase) -> torch.Tensor:
-        if self.gradient_penalty == 0:
-            return torch.zeros((), device=unlabeled.device)
-        keys = self.discriminator_network.in_keys
-        points = discriminator_penalty_points(positive, unlabeled, keys)
-
-        def logit_fn(*tensors: torch.Tensor) -> torch.Tensor:
-            return self._logits(TensorDict(dict(zip(keys, tensors, strict=True)), [tensors[0].shape[0]]))
-
-        norms = input_gradient_norms(logit_fn, points)
-        return self.gradient_penalty * gradient_penalty(norms, target=1.0)
-
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Compute the discriminator losses on ``tensordict[positive]`` and ``tensordict[unlabeled]``."""
-        keys = self.discriminator_network.in_keys
-        positive = get_role(tensordict, self.tensor_keys.positive).select(*keys).reshape(-1)
-        unlabeled = get_role(tensordict, self.tensor_keys.unlabeled).select(*keys).reshape(-1)
-        n_pos = positive.shape[0]
-        logits = self._logits(torch.cat([positive, unlabeled], 0))
-        pos_logits, unl_logits = logits[:n_pos], logits[n_pos:]
-        outputs = discriminator_outputs(pos_logits, unl_logits, self.class_prior, self.reduction)
-        out = TensorDict(
-            {
-                "loss_positive": outputs.pop("loss_positive"),
-                "loss_unlabeled": outputs.pop("loss_unlabeled"),
-                "loss_gradient_penalty": self._penalty(positive, unlabeled),
-                **outputs,
-            },
-            [],
+    @property
+    def discriminator(self) -> PureNetwork:
+        """The discriminator as a function of its parameters."""
+        return self._pure(
+            "discriminator",
+            lambda: PureNetwork(
+                self.discriminator_network,
+                self.discriminator_network_params,
+                "PUDiscriminatorLoss's discriminator",
+            ),
         )
-        self._clear_weakrefs(tensordict, out, "discriminator_network_params")
+
+    def term_parameters(self) -> dict[str, nn.Parameter]:
+        net = self.discriminator.parameters(self.discriminator_network_params)
+        return {f"net.{k}": v for k, v in net.items()}
+
+    def check_compilable(self) -> None:
+        self.discriminator.check_compilable()
+
+    def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
+        """The discriminator's inputs on both roles (``positive.<i>``, ``unlabeled.<i>`` in ``in_keys`` order)
+        and, when the penalty is on, its points (:func:`discriminator_penalty_points`, random, drawn here)."""
+        keys, roles = self.discriminator.in_keys, self.tensor_keys
+        positive = get_role(tensordict, roles.positive).select(*keys).reshape(-1)
+        unlabeled = get_role(tensordict, roles.unlabeled).select(*keys).reshape(-1)
+        out = {f"positive.{i}": positive.get(k) for i, k in enumerate(keys)}
+        out |= {f"unlabeled.{i}": unlabeled.get(k) for i, k in enumerate(keys)}
+        if self.gradient_penalty != 0:
+            points = discriminator_penalty_points(positive, unlabeled, keys)
+            out |= {f"points.{i}": p for i, p in enumerate(points)}
         return out
+
+    def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
+        """``loss_positive``, ``loss_unlabeled`` (:func:`discriminator_outputs`), the WGAN-style gradient
+        penalty :math:`c\\,E[(\\lVert \\nabla_x C(x) \\rVert - 1)^2]` on the points, and the diagnostics."""
+        net_params = {k.removeprefix("net."): v for k, v in params.items()}
+        inputs = range(len(self.discriminator.in_keys))
+
+        def logits(*xs: torch.Tensor) -> torch.Tensor:
+            return self.discriminator(net_params, *xs).reshape(-1)
+
+        n_pos = x["positive.0"].shape[0]
+        both = logits(*(torch.cat([x[f"positive.{i}"], x[f"unlabeled.{i}"]]) for i in inputs))
+        outputs = discriminator_outputs(both[:n_pos], both[n_pos:], self.class_prior, self.reduction)
+        penalty = both.new_zeros(())
+        if "points.0" in x:
+            grads = grad(lambda *xs: logits(*xs).sum(), argnums=tuple(inputs))(
+                *(x[f"points.{i}"] for i in inputs)
+            )
+            norms = torch.cat([g.reshape(g.shape[0], -1) for g in grads], dim=-1).norm(dim=-1)
+            penalty = self.gradient_penalty * gradient_penalty(norms, target=1.0)
+        if self.reduction == "none":  # per-sample losses of two roles: their sums are what a step descends
+            total = outputs["loss_positive"].sum() + outputs["loss_unlabeled"].sum() + penalty
+        else:
+            total = outputs["loss_positive"] + outputs["loss_unlabeled"] + penalty
+        return total, {**outputs, "loss_gradient_penalty": penalty}

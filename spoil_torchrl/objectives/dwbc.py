@@ -5,13 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
+from torch import nn
 
 from spoil_torchrl.objectives.functional import check_reduction
 from spoil_torchrl.objectives.keys import get_role, role_key
+from spoil_torchrl.objectives.pure import PureLoss, PureNetwork, PurePolicy, Tensors, flat_rows
 from spoil_torchrl.objectives.weighted_bc import weighted_nll
 
 #: The reference code's range of :math:`\log \pi(a|s)` per action dimension, mapped onto [0, 1].
@@ -93,7 +94,7 @@ def dwbc_outputs(
 ) -> dict[str, torch.Tensor]:
     """:class:`DWBCLoss`'s outputs from the policy's log-likelihoods and the discriminator's logits of the expert
     rows (the first ``n_expert``) and the unlabeled rows: ``loss_discriminator``, ``loss_actor`` and the detached
-    diagnostics. The LossModule and the compiled update step both call it.
+    diagnostics. :meth:`DWBCLoss.terms` calls it.
 
     Examples:
         >>> out = dwbc_outputs(torch.zeros(4), torch.zeros(4), 2, alpha=7.5, eta=0.5, offset=0.1)
@@ -121,7 +122,7 @@ def dwbc_outputs(
     }
 
 
-class DWBCLoss(LossModule):
+class DWBCLoss(PureLoss):
     r"""DWBC (Xu et al., 2022): a discriminator and a discriminator-weighted BC policy, trained jointly.
 
     DWBC (`reference code <https://github.com/ryanxhr/DWBC>`_) imitates an expert role :math:`D_E` with the help
@@ -269,9 +270,6 @@ class DWBCLoss(LossModule):
         keys = {"expert": expert, "unlabeled": unlabeled}
         self.set_keys(**{name: key for name, key in keys.items() if key is not None})
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     def _discriminator_inputs(self) -> list[NestedKey]:
         keys = list(self.discriminator_network.in_keys)
         if self.tensor_keys.log_prob_input not in keys:
@@ -289,28 +287,61 @@ class DWBCLoss(LossModule):
         inner += [k for k in self._discriminator_inputs() if k not in inner]
         return [role_key(role, k) for role in (keys.expert, keys.unlabeled) for k in inner]
 
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Compute ``loss_discriminator`` and ``loss_actor`` on ``tensordict[expert]`` and ``[unlabeled]``."""
-        keys = self.tensor_keys
-        disc_keys = self._discriminator_inputs()
-        roles = [get_role(tensordict, keys.expert), get_role(tensordict, keys.unlabeled)]
-        actions = []
-        for role in roles:
-            action = role.get(keys.action)
-            actions.append(action.reshape(-1, *action.shape[role.batch_dims :]))
-        n_expert = actions[0].shape[0]
-        action = torch.cat(actions)
-        action_dim = action[0].numel()
-        states = torch.cat([role.select(*self.actor_network.in_keys).reshape(-1) for role in roles])
-        with self.actor_network_params.to_module(self.actor_network):
-            log_prob = self.actor_network.get_dist(states).log_prob(action).reshape(-1)
+    functional_params = ("actor_network_params", "discriminator_network_params")
 
-        disc_in = torch.cat([role.select(*disc_keys).reshape(-1) for role in roles])
-        disc_in.set(keys.log_prob_input, log_prob_feature(log_prob, action_dim).unsqueeze(-1))
-        with self.discriminator_network_params.to_module(self.discriminator_network):
-            logit = self.discriminator_network(disc_in).get(self.discriminator_network.out_keys[0])
-        outputs = dwbc_outputs(log_prob, logit.reshape(-1), n_expert, self.alpha, self.eta, self.offset)
-        out = TensorDict(outputs, [])
-        self._clear_weakrefs(tensordict, out, "actor_network_params", "discriminator_network_params")
+    @property
+    def policy(self) -> PurePolicy:
+        """The actor as a function of its parameters (:class:`~spoil_torchrl.objectives.pure.PurePolicy`)."""
+        return self._pure(
+            "actor", lambda: PurePolicy(self.actor_network, self.actor_network_params, "DWBCLoss's actor")
+        )
+
+    @property
+    def discriminator(self) -> PureNetwork:
+        """D(s, a, log pi) as a function of its parameters."""
+        return self._pure(
+            "discriminator",
+            lambda: PureNetwork(
+                self.discriminator_network, self.discriminator_network_params, "DWBCLoss's discriminator"
+            ),
+        )
+
+    def term_parameters(self) -> dict[str, nn.Parameter]:
+        policy = self.policy.parameters(self.actor_network_params)
+        net = self.discriminator.parameters(self.discriminator_network_params)
+        return {
+            **{f"policy.{k}": v for k, v in policy.items()},
+            **{f"net.{k}": v for k, v in net.items()},
+        }
+
+    def check_compilable(self) -> None:
+        self.policy.check_compilable()
+        self.discriminator.check_compilable()
+
+    def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
+        """Each role's states, actions and the discriminator's inputs read from the data."""
+        keys, out = self.tensor_keys, {}
+        data_keys = self._discriminator_inputs()
+        for name, role_name in (("expert", keys.expert), ("unlabeled", keys.unlabeled)):
+            role = get_role(tensordict, role_name)
+            out[f"{name}.state"] = self.policy.states(role)
+            out[f"{name}.action"] = flat_rows(role, keys.action)
+            out |= {f"{name}.{i}": flat_rows(role, k) for i, k in enumerate(data_keys)}
         return out
+
+    def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
+        """``loss_discriminator`` and ``loss_actor`` (:func:`dwbc_outputs`) on both roles, the policy's
+        log-likelihood feeding the discriminator."""
+        policy_params = {k.removeprefix("policy."): v for k, v in params.items() if k.startswith("policy.")}
+        net_params = {k.removeprefix("net."): v for k, v in params.items() if k.startswith("net.")}
+        data_keys = self._discriminator_inputs()
+        n_expert = x["expert.action"].shape[0]
+        action = torch.cat([x["expert.action"], x["unlabeled.action"]])
+        states = torch.cat([x["expert.state"], x["unlabeled.state"]])
+        log_prob = self.policy.log_prob(policy_params, states, action)
+        data = {k: torch.cat([x[f"expert.{i}"], x[f"unlabeled.{i}"]]) for i, k in enumerate(data_keys)}
+        data[self.tensor_keys.log_prob_input] = log_prob_feature(log_prob, action[0].numel()).unsqueeze(-1)
+        net = self.discriminator
+        logit = net(net_params, *(data[k] for k in net.in_keys)).reshape(-1)
+        outputs = dwbc_outputs(log_prob, logit, n_expert, self.alpha, self.eta, self.offset)
+        return outputs["loss_discriminator"] + outputs["loss_actor"], outputs

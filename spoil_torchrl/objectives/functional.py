@@ -1,5 +1,5 @@
 """Pure tensor functions shared by the losses: gradient penalties, log-sum-exp weights, reductions, and the
-pieces every DICE dual has in common (Bellman backup, advantage, the nu gradient penalty).
+pieces every DICE dual has in common (Bellman backup, advantage, the nu gradient penalty's points).
 
 Each function does one thing and holds no parameters, so every loss (SpoilDICE and the DICE baselines
 DemoDICE and SafeDICE) uses the same numerically careful version.
@@ -8,7 +8,7 @@ DemoDICE and SafeDICE) uses the same numerically careful version.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 
@@ -83,23 +83,6 @@ def interpolate(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return alpha * a + (1 - alpha) * b
 
 
-def input_gradient_norms(fn: Callable[..., torch.Tensor], inputs: Sequence[torch.Tensor]) -> torch.Tensor:
-    """Per-sample norms of the gradient of ``fn(*inputs)`` with respect to the (concatenated) inputs.
-
-    The graph is kept (``create_graph=True``) so that a penalty on these norms trains the network parameters.
-
-    Examples:
-        >>> w = torch.tensor([3.0, 4.0], requires_grad=True)
-        >>> input_gradient_norms(lambda x: x @ w, [torch.randn(5, 2)])
-        tensor([5., 5., 5., 5., 5.], grad_fn=<LinalgVectorNormBackward0>)
-    """
-    leaves = [x.detach().requires_grad_(True) for x in inputs]
-    with torch.enable_grad():
-        out = fn(*leaves)
-        grads = torch.autograd.grad(out.sum(), leaves, create_graph=True)
-    return torch.cat([g.reshape(g.shape[0], -1) for g in grads], dim=-1).norm(dim=-1)
-
-
 def gradient_penalty(norms: torch.Tensor, target: float | None) -> torch.Tensor:
     """Mean gradient penalty: ``E[(|g| - target)^2]`` (WGAN-GP style, ``target=1``) or ``E[|g|^2]`` (``None``).
 
@@ -171,41 +154,15 @@ def dice_advantage(reward: torch.Tensor, nu: torch.Tensor, backup: torch.Tensor)
     return reward + backup - nu
 
 
-# Double backward through a compiled graph is not supported by torch.compile: keep the penalty eager.
-@torch.compiler.disable
-def nu_gradient_penalty(
-    nu_fn: Callable[[dict], torch.Tensor],
-    init: Mapping[object, torch.Tensor],
-    current: Mapping[object, torch.Tensor],
-    following: Mapping[object, torch.Tensor],
-) -> torch.Tensor:
-    """:math:`E[\\lVert \\nabla_s \\nu(\\tilde s) \\rVert^2]` on the current states, on points between initial and
-    current states and on points between :math:`s` and :math:`s'` (DemoDICE's reference form, with the
-    regularisation data in place of its expert data, which a DICE dual over one role does not have).
-
-    ``init``, ``current`` and ``following`` map each input key of the network to a flat ``[n, *event]`` tensor
-    (``current`` and ``following`` row-aligned); ``nu_fn`` maps such a dict to ``[n]`` values. The graph is kept,
-    so the penalty trains the network's parameters.
-
-    Examples:
-        >>> w = torch.tensor([3.0, 4.0], requires_grad=True)
-        >>> states = {"observation": torch.randn(5, 2)}
-        >>> nu_gradient_penalty(lambda s: s["observation"] @ w, states, states, states)
-        tensor(25., grad_fn=<MeanBackward0>)
-    """
-    keys = list(current)
-    points = penalty_points(init, current, following)
-    norms = input_gradient_norms(lambda *xs: nu_fn(dict(zip(keys, xs, strict=True))), list(points.values()))
-    return gradient_penalty(norms, target=None)
-
-
 def penalty_points(
     init: Mapping[object, torch.Tensor],
     current: Mapping[object, torch.Tensor],
     following: Mapping[object, torch.Tensor],
 ) -> dict[object, torch.Tensor]:
-    """The states :func:`nu_gradient_penalty` penalises: the current states, then points between the first
-    initial and current states, then points between :math:`s` and :math:`s'` (random, one draw per row).
+    """The states a DICE dual's gradient penalty is taken at (:func:`~spoil_torchrl.objectives.dice.state_terms`):
+    the current states, then points between the first initial and current states, then points between :math:`s`
+    and :math:`s'` (random, one draw per row; DemoDICE's reference form, with the dual's own role in place of
+    its expert data).
 
     The current states come first, so nu's values on the first ``n`` rows are nu's values at :math:`s`.
 

@@ -7,21 +7,20 @@ import math
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule, dispatch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
 
+from spoil_torchrl.objectives.dice import DICELoss
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
     dice_advantage,
     log_mean_exp,
-    nu_gradient_penalty,
     self_normalized_weights,
     weight_diagnostics,
 )
 from spoil_torchrl.objectives.keys import get_role
-from spoil_torchrl.objectives.nu_values import StateValues
+from spoil_torchrl.objectives.pure import Tensors
 
 #: Smallest argument of the reward's logarithm (the reference code's clip in its reward statistics).
 REWARD_LOG_FLOOR = 1e-10
@@ -114,7 +113,7 @@ def safedice_log_weight(advantage: torch.Tensor) -> torch.Tensor:
     return advantage - 1.0
 
 
-class SafeDICELoss(StateValues, LossModule):
+class SafeDICELoss(DICELoss):
     r"""SafeDICE's dual objective over :math:`\nu` (Jang et al., 2023), with a frozen non-preferred discriminator.
 
     SafeDICE (`reference code <https://github.com/jys5609/SafeDICE>`_) imitates the preferred part of the
@@ -128,7 +127,7 @@ class SafeDICELoss(StateValues, LossModule):
 
     * ``loss_nu`` is :func:`safedice_dual` plus a gradient penalty :math:`c\,E[\lVert \nabla_s \nu(\tilde s)
       \rVert^2]` (Table J: 10) on unlabeled states, on states between initial and unlabeled states and between
-      :math:`s` and :math:`s'` (:func:`~spoil_torchrl.objectives.functional.nu_gradient_penalty`; the reference
+      :math:`s` and :math:`s'` (:func:`~spoil_torchrl.objectives.dice.state_terms`; the reference
       interpolates with the non-preferred states instead).
 
     The loss reads the discriminator's *logit* (:math:`\log d_N/d_U`, what
@@ -245,8 +244,12 @@ class SafeDICELoss(StateValues, LossModule):
         self.reward_mean = float(reward_mean)
         self.reward_std = float(reward_std)
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
+    #: what the vectorised step takes per seed from each seed's inputs, so seeds with other values share a step
+    per_seed = ("alpha", "reward_mean", "reward_std")
+
+    @property
+    def dual_role(self) -> NestedKey:
+        return self.tensor_keys.unlabeled
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -270,7 +273,7 @@ class SafeDICELoss(StateValues, LossModule):
     ) -> dict[str, torch.Tensor]:
         """The detached diagnostics output beside ``loss_nu`` (see the class docstring), from nu, the advantage,
         its log weights (:func:`safedice_log_weight`) and their self-normalised weights, and the reward.
-        ``alpha`` (a 0-d tensor) stands in for the loss's own (a compiled step of several seeds passes each
+        ``alpha`` (a 0-d tensor) stands in for the loss's own (a vectorised step of several seeds passes each
         seed's)."""
         with torch.no_grad():
             dtype = advantage.dtype
@@ -285,30 +288,30 @@ class SafeDICELoss(StateValues, LossModule):
                 "advantage_mean": advantage.detach().mean(),
             }
 
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Compute ``loss_nu`` and write the weights into ``tensordict[unlabeled]``."""
-        keys = self.tensor_keys
-        unlabeled = get_role(tensordict, keys.unlabeled)
-        transitions = self._transitions(tensordict, keys.unlabeled)
-        batch_shape, init, current, following, terminated = transitions
-        n = batch_shape.numel()
+    def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
+        """The dual's inputs (:meth:`DICELoss.inputs`), and the probability, reward (:meth:`reward`) and
+        ``alpha`` of the unlabeled transitions. The reward is a function of the data and of settings the recipe
+        derives from each seed's discriminator, so it is an input: seeds with other values share one
+        vectorised step (:attr:`per_seed`)."""
+        data = get_role(tensordict, self.dual_role)
+        logit = data.get(self.tensor_keys.logit).reshape(data.batch_size.numel())
+        dtype = next(iter(self.nu_network_params.values(True, True))).dtype
+        probability, reward = self.reward(logit.detach().to(dtype))
+        alpha = torch.tensor(self.alpha, dtype=dtype, device=logit.device)
+        return {**super().inputs(tensordict), "probability": probability, "reward": reward, "alpha": alpha}
 
-        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
-        logit = unlabeled.get(keys.logit).reshape(n).detach().to(nu.dtype)
-        probability, reward = self.reward(logit)
-        advantage = dice_advantage(reward, nu, bellman_backup(next_nu, terminated, self.gamma))
-        loss_nu = safedice_dual(init_nu, advantage, self.gamma)
-        if self.gradient_penalty > 0:
-            penalty = nu_gradient_penalty(self._nu, init, current, following)
-            loss_nu = loss_nu + self.gradient_penalty * penalty
-
+    def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
+        """``loss_nu`` (with the gradient penalty) and the diagnostics; the self-normalised weights and the
+        advantage go into ``produced``."""
+        init_nu, current_nu, next_nu, penalty = self.nu_terms(params, x)
+        probability, reward = x["probability"], x["reward"]
+        advantage = dice_advantage(reward, current_nu, bellman_backup(next_nu, x["terminated"], self.gamma))
+        loss_nu = safedice_dual(init_nu, advantage, self.gamma) + penalty
         with torch.no_grad():
-            log_weights = safedice_log_weight(advantage)
+            log_weights = safedice_log_weight(advantage.detach())
             weights = self_normalized_weights(log_weights)
-            unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
-            unlabeled.set(keys.advantage, advantage.detach().reshape(*batch_shape, 1))
-            diagnostics = self.diagnostics(init_nu, advantage, log_weights, weights, probability, reward)
-            out = TensorDict({"loss_nu": loss_nu, **diagnostics}, [])
-        self._clear_weakrefs(tensordict, out, "nu_network_params")
-        return out
+        self._produce(produced, weights, advantage)
+        diagnostics = self.diagnostics(
+            init_nu, advantage, log_weights, weights, probability, reward, alpha=x["alpha"]
+        )
+        return loss_nu, {"loss_nu": loss_nu, **diagnostics}

@@ -5,21 +5,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule, dispatch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.objectives import LossModule
 
+from spoil_torchrl.objectives.dice import DICELoss
 from spoil_torchrl.objectives.functional import (
     bellman_backup,
     log_mean_exp,
-    nu_gradient_penalty,
     self_normalized_weights,
     weight_diagnostics,
 )
 from spoil_torchrl.objectives.keys import get_role, role_key
-from spoil_torchrl.objectives.nu_values import StateValues
+from spoil_torchrl.objectives.pure import Tensors
 
 
 def spoildice_advantage(
@@ -81,8 +80,8 @@ def spoildice_losses(
     """``(loss_nu, loss_lambda, advantage)`` of :class:`SpoilDICELoss` from nu's values (no gradient penalty).
 
     ``loss_nu`` is Eq. (19) with :math:`\\lambda` detached, ``loss_lambda`` Eq. (19) with :math:`\\nu` detached,
-    and ``advantage`` Eq. (7) with :math:`\\lambda` detached (the exponent of the weights). Both the LossModule
-    and the compiled update step (:mod:`spoil_torchrl.trainers.compiled`) call this one function.
+    and ``advantage`` Eq. (7) with :math:`\\lambda` detached (the exponent of the weights). :meth:`SpoilDICELoss.terms`
+    calls it, in the eager and the compiled step alike.
 
     Examples:
         >>> z = torch.zeros(2)
@@ -139,7 +138,7 @@ def check_support_indicator(support: torch.Tensor, key: NestedKey) -> None:
         )
 
 
-class SpoilDICELoss(StateValues, LossModule):
+class SpoilDICELoss(DICELoss):
     r"""SpoilDICE's dual objective over :math:`\nu` and the support multiplier :math:`\lambda`.
 
     From the `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_ (section 4,
@@ -265,8 +264,9 @@ class SpoilDICELoss(StateValues, LossModule):
         self._setup_dual(nu_network, gamma=gamma, gradient_penalty=gradient_penalty, reduction=reduction)
         self.lagrange = nn.Parameter(torch.tensor(float(init_lagrange)))
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
+    @property
+    def dual_role(self) -> NestedKey:
+        return self.tensor_keys.unlabeled
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -274,40 +274,46 @@ class SpoilDICELoss(StateValues, LossModule):
             self.tensor_keys.unlabeled, self.tensor_keys.log_ratio, self.tensor_keys.support
         )
 
-    def _penalty(self, init: dict, current: dict, following: dict) -> torch.Tensor:
-        if self.gradient_penalty == 0:
-            return torch.zeros((), device=next(iter(current.values())).device)
-        return self.gradient_penalty * nu_gradient_penalty(self._nu, init, current, following)
+    def term_parameters(self) -> dict[str, nn.Parameter]:
+        return {**super().term_parameters(), "lagrange": self.lagrange}
 
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Compute ``loss_nu`` and ``loss_lambda`` and write the weights into ``tensordict[unlabeled]``."""
+    def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
+        """The dual's inputs (:meth:`DICELoss.inputs`), :math:`\\log \\hat r_P` and the checked support
+        indicator of the unlabeled transitions."""
         keys = self.tensor_keys
         unlabeled = get_role(tensordict, keys.unlabeled)
-        transitions = self._transitions(tensordict, keys.unlabeled)
-        batch_shape, init, current, following, terminated = transitions
-        n = batch_shape.numel()
-
-        init_nu, nu, next_nu = self._on_transitions("nu_network", transitions)
-        log_ratio = unlabeled.get(keys.log_ratio).reshape(n).to(nu.dtype)
-        support = unlabeled.get(keys.support).reshape(n).to(nu.dtype)
+        n = unlabeled.batch_size.numel()
+        support = unlabeled.get(keys.support).reshape(n)
         check_support_indicator(support, role_key(keys.unlabeled, keys.support))
-        loss_nu, loss_lambda, adv_nu = spoildice_losses(
-            init_nu, nu, next_nu, terminated, log_ratio, support, self.lagrange, self.gamma
+        return {
+            **super().inputs(tensordict),
+            "log_ratio": unlabeled.get(keys.log_ratio).reshape(n),
+            "support": support,
+        }
+
+    def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
+        """``loss_nu`` (with the gradient penalty), ``loss_lambda`` and the diagnostics; the self-normalised
+        weights (Eq. 11) and the advantage go into ``produced``."""
+        init_nu, current_nu, next_nu, penalty = self.nu_terms(params, x)
+        dtype = current_nu.dtype
+        support = x["support"].to(dtype)
+        loss_nu, loss_lambda, advantage = spoildice_losses(
+            init_nu,
+            current_nu,
+            next_nu,
+            x["terminated"],
+            x["log_ratio"].to(dtype),
+            support,
+            params["lagrange"],
+            self.gamma,
         )
-        loss_nu = loss_nu + self._penalty(init, current, following)
+        loss_nu = loss_nu + penalty
         with torch.no_grad():
-            log_weights = closed_form_log_weight(adv_nu)
+            log_weights = closed_form_log_weight(advantage.detach())
             weights = self_normalized_weights(log_weights)
-            unlabeled.set(keys.weight, weights.reshape(*batch_shape, 1))
-            unlabeled.set(keys.advantage, adv_nu.detach().reshape(*batch_shape, 1))
-            out = TensorDict(
-                {
-                    "loss_nu": loss_nu,
-                    "loss_lambda": loss_lambda,
-                    **spoildice_diagnostics(init_nu, adv_nu, log_weights, weights, support, self.lagrange),
-                },
-                [],
-            )
-        self._clear_weakrefs(tensordict, out, "nu_network_params")
-        return out
+        self._produce(produced, weights, advantage)
+        outputs = {"loss_nu": loss_nu, "loss_lambda": loss_lambda}
+        outputs |= spoildice_diagnostics(
+            init_nu, advantage, log_weights, weights, support, params["lagrange"]
+        )
+        return loss_nu + loss_lambda, outputs

@@ -5,13 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import ProbabilisticTensorDictSequential, dispatch
+from tensordict import TensorDictBase, TensorDictParams
+from tensordict.nn import ProbabilisticTensorDictSequential
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
+from torch import nn
 
 from spoil_torchrl.objectives.functional import check_reduction, reduce
 from spoil_torchrl.objectives.keys import get_role, role_key
+from spoil_torchrl.objectives.pure import PureLoss, PurePolicy, Tensors, flat_rows
 
 
 def weighted_nll(log_prob: torch.Tensor, weight: torch.Tensor | None) -> torch.Tensor:
@@ -29,8 +30,7 @@ def weighted_bc_outputs(
     log_prob: torch.Tensor, weight: torch.Tensor | None, reduction: str
 ) -> dict[str, torch.Tensor]:
     """What :class:`WeightedBCLoss` outputs from the batch's log-likelihoods and weights: ``loss_actor``
-    (Eq. 20, reduced) and the detached ``log_prob`` and ``weight_mean``. The LossModule and the compiled update
-    step (:mod:`spoil_torchrl.trainers.compiled`) both call it.
+    (Eq. 20, reduced) and the detached ``log_prob`` and ``weight_mean``. :meth:`WeightedBCLoss.terms` calls it.
 
     Examples:
         >>> out = weighted_bc_outputs(torch.tensor([-1.0, -2.0]), torch.tensor([0.0, 2.0]), "mean")
@@ -46,7 +46,7 @@ def weighted_bc_outputs(
     }
 
 
-class WeightedBCLoss(LossModule):
+class WeightedBCLoss(PureLoss):
     r"""Weighted behavioural cloning :math:`E_{(s,a)\sim D}[-w(s,a) \log \pi(a|s)]` (Eq. 20).
 
     From the `SpoilDICE paper <https://anonymous.4open.science/r/iclr2026_spoildice-214C>`_, appendix D.3.
@@ -132,8 +132,7 @@ class WeightedBCLoss(LossModule):
         if weight_given:
             self.tensor_keys.weight = weight
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
+    functional_params = ("actor_network_params",)
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -143,18 +142,39 @@ class WeightedBCLoss(LossModule):
             inner.append(keys.weight)
         return [role_key(keys.role, k) for k in inner]
 
-    @dispatch
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Compute ``loss_actor`` on the transitions of ``tensordict[role]``."""
+    @property
+    def policy(self) -> PurePolicy:
+        """The actor as a function of its parameters (:class:`~spoil_torchrl.objectives.pure.PurePolicy`)."""
+        return self._pure(
+            "actor",
+            lambda: PurePolicy(self.actor_network, self.actor_network_params, "WeightedBCLoss's actor"),
+        )
+
+    def term_parameters(self) -> dict[str, nn.Parameter]:
+        return {f"policy.{k}": v for k, v in self.policy.parameters(self.actor_network_params).items()}
+
+    def check_compilable(self) -> None:
+        self.policy.check_compilable()
+
+    @property
+    def weight_key(self) -> NestedKey | None:
+        """The weight's entry, ``(role, weight)`` (``None`` for plain BC)."""
+        keys = self.tensor_keys
+        return None if keys.weight is None else role_key(keys.role, keys.weight)
+
+    def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
+        """The role's states and actions, and its weights unless an earlier loss of the step produces them."""
         keys = self.tensor_keys
         role = get_role(tensordict, keys.role)
-        data = role.select(*self.actor_network.in_keys).reshape(-1)
-        action = role.get(keys.action)
-        action = action.reshape(-1, *action.shape[role.batch_dims :])
-        with self.actor_network_params.to_module(self.actor_network):
-            dist = self.actor_network.get_dist(data)
-        log_prob = dist.log_prob(action).reshape(-1)
-        weight = None if keys.weight is None else role.get(keys.weight).reshape(-1)
-        out = TensorDict(weighted_bc_outputs(log_prob, weight, self.reduction), [])
-        self._clear_weakrefs(tensordict, out, "actor_network_params")
+        out = {"state": self.policy.states(role), "action": flat_rows(role, keys.action)}
+        if keys.weight is not None and self.weight_key not in produced:
+            out["weight"] = role.get(keys.weight).reshape(-1)
         return out
+
+    def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
+        """``loss_actor`` (Eq. 20) and the diagnostics; the weight is an input, or an earlier loss's product."""
+        policy_params = {k.removeprefix("policy."): v for k, v in params.items()}
+        log_prob = self.policy.log_prob(policy_params, x["state"], x["action"])
+        weight = produced[self.weight_key] if self.weight_key in produced else x.get("weight")
+        outputs = weighted_bc_outputs(log_prob, weight, self.reduction)
+        return outputs["loss_actor"], outputs

@@ -1,21 +1,18 @@
 """The compiled update step: a main stage's whole update (every loss, the gradients, nu's gradient penalty with
 its double backward) traced by ``torch.compile`` as one graph over plain tensors.
 
-Why plain tensors. A LossModule puts its functional parameters in place with tensordict's ``to_module``, and
-Dynamo skips any frame that does so: compiling the LossModules themselves runs them eagerly (measured, see
-CONTRIBUTING.md). :class:`CompiledStepper` therefore reads each loss's networks and parameters, evaluates the
-same equation functions the LossModule calls (:func:`~spoil_torchrl.objectives.spoildice.spoildice_losses`,
-:func:`~spoil_torchrl.objectives.weighted_bc.weighted_bc_outputs`, ...) through
-:func:`torch.func.functional_call`, and differentiates the sum of the ``loss_*`` terms with
-:func:`torch.func.grad_and_value`, which Dynamo traces whole. The gradients are handed to the losses' own
+Every loss of the package is a :class:`~spoil_torchrl.objectives.pure.PureLoss`: its ``forward`` is
+``terms(term_parameters(), inputs(tensordict))``, the equations living in ``terms`` as functions of plain
+tensors. :class:`CompiledStepper` calls the same methods: each loss's ``inputs`` of the batch (eager: it reads
+the tensordict and draws the penalty's random points, in the eager step's order), then one compiled function
+that evaluates every loss's ``terms`` and differentiates the sum of their ``loss_*`` terms with
+:func:`torch.func.grad_and_value`, which Dynamo traces whole. (A LossModule that puts its functional parameters
+in place with tensordict's ``to_module`` cannot be traced: Dynamo skips any frame that does so; the pure
+networks are called through :func:`torch.func.functional_call`.) The gradients are handed to the losses' own
 optimisers, so parameters, optimiser state, schedules, checkpoints and resuming are those of the eager step.
 
 What differs from the eager step, and why the numbers agree only to float tolerance:
 
-* a DICE dual's state network (nu, COptiDICE's chi) is evaluated on the penalty's points (whose first rows are
-  the current states, see :func:`~spoil_torchrl.objectives.functional.penalty_points`) once, for both the dual
-  and the penalty, instead of on the current states a second time: the same values, one forward pass of the
-  batch fewer;
 * the compiler fuses and reorders float operations;
 * Adam runs PyTorch's fused kernel (:func:`use_fused_adam`), whose floats differ from the default kernel's in
   the last bit.
@@ -24,10 +21,9 @@ The random numbers (the penalty's interpolation points) are drawn outside the gr
 so a compiled run consumes the same random stream as an eager one; a compiled run is as deterministic as an
 eager one.
 
-Every loss of the package has a compiled form, registered in ``COMPILED_FORMS``
-(:mod:`~spoil_torchrl.trainers.compiled_forms`; CONTRIBUTING.md, "How to add a loss"). A stepper with a loss
-that has none, a network the plain-tensor path cannot read, or a step that fails to compile trains eagerly,
-said once in the log.
+Any loss with the ``inputs`` / ``terms`` / ``term_parameters`` methods compiles, a user's subclass included. A
+stepper with a loss that has none, a network the pure form cannot call (``check_compilable``), or a step that
+fails to compile trains eagerly, said once in the log.
 """
 
 from __future__ import annotations
@@ -36,7 +32,6 @@ import itertools
 import logging
 import types
 from collections.abc import Callable, Mapping
-from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -44,27 +39,54 @@ from torch import nn
 from torch.func import grad_and_value
 from torchrl.objectives import LossModule
 
-from spoil_torchrl.trainers.compiled_forms import NotCompilable, compiled_forms
+from spoil_torchrl.objectives.pure import NotCompilable
 from spoil_torchrl.trainers.offline import MultiLossStepper, scalar_outputs
 
 log = logging.getLogger(__name__)
 
 
-def update_gradients(forms: Mapping[str, Any]) -> Callable:
-    """The uncompiled update of a step's compiled forms: ``(params, inputs) -> (grads, (total, outputs))``, with
-    ``params`` and ``inputs`` keyed by loss name (each loss's :meth:`parameters` detached, its :meth:`inputs` of a
-    batch), the gradients of the summed ``loss_*`` terms in ``params``' structure, and each loss's outputs. A pure
-    function: it can be compiled, or vmapped over a leading seed dimension of stacked parameters and inputs."""
+def pure_losses(losses: Mapping[str, LossModule]) -> dict[str, frozenset]:
+    """For every loss of a step (in order), the keys the losses before it produce (what its ``inputs`` does not
+    read from the batch), or :class:`~spoil_torchrl.objectives.pure.NotCompilable` naming the first loss that
+    has no pure form or whose networks the compiled step cannot call."""
+    earlier, out = frozenset(), {}
+    for name, loss in losses.items():
+        if not all(callable(getattr(loss, m, None)) for m in ("inputs", "terms", "term_parameters")):
+            raise NotCompilable(f"{type(loss).__name__} has no inputs / terms split (not a PureLoss)")
+        check = getattr(loss, "check_compilable", None)
+        if check is not None:
+            check()
+        out[name] = earlier
+        earlier = earlier | frozenset(getattr(loss, "produces", ()))
+    return out
+
+
+def update_gradients(losses: Mapping[str, LossModule]) -> Callable:
+    """The uncompiled update of a step's losses: ``(params, inputs) -> (grads, (total, outputs))``, with
+    ``params`` and ``inputs`` keyed by loss name (each loss's :meth:`term_parameters` detached, its
+    :meth:`inputs` of a batch), the gradients of the summed ``loss_*`` terms in ``params``' structure, and each
+    loss's outputs. A pure function: it can be compiled, or vmapped over a leading seed dimension of stacked
+    parameters and inputs."""
 
     def total_loss(params, inputs):
         produced: dict = {}
         total, outputs = 0.0, {}
-        for name, form in forms.items():
-            loss, outputs[name] = form(params[name], inputs[name], produced)
-            total = total + loss
+        for name, loss in losses.items():
+            value, outputs[name] = loss.terms(params[name], inputs[name], produced)
+            total = total + value
         return total, outputs
 
     return grad_and_value(total_loss, has_aux=True)
+
+
+def step_inputs(losses: Mapping[str, LossModule], earlier: Mapping[str, frozenset], batch) -> dict:
+    """Every loss's :meth:`inputs` of ``batch`` (in order: the random draws are the eager step's)."""
+    return {name: loss.inputs(batch, earlier[name]) for name, loss in losses.items()}
+
+
+def step_parameters(losses: Mapping[str, LossModule]) -> dict[str, dict[str, nn.Parameter]]:
+    """Every loss's :meth:`term_parameters`, keyed by loss name."""
+    return {name: loss.term_parameters() for name, loss in losses.items()}
 
 
 def detached(parameters: Mapping[str, Mapping[str, torch.Tensor]]) -> dict[str, dict[str, torch.Tensor]]:
@@ -166,9 +188,9 @@ class CompiledStepper(MultiLossStepper):
 
     Same constructor, outputs (``<loss>.<entry>`` scalars), optimisers and state dict as the eager stepper; once
     its first step has compiled, its Adam optimisers run PyTorch's fused kernel (:func:`use_fused_adam`). When
-    a loss has no compiled form, or the first step fails to compile, it says so once (a warning of this module's
-    logger) and steps eagerly from then on; that first step's random draws are undone first, so the run is the
-    eager run.
+    a loss has no pure form (:func:`pure_losses`), or the first step fails to compile, it says so once (a
+    warning of this module's logger) and steps eagerly from then on; that first step's random draws are undone
+    first, so the run is the eager run.
 
     Args:
         losses, optimizers, schedulers: as for :class:`MultiLossStepper`.
@@ -200,36 +222,28 @@ class CompiledStepper(MultiLossStepper):
         self.compiled = False  # True once a step has run compiled
         self._fn = None
         try:
-            self._forms: dict[str, Any] | None = compiled_forms(self.losses)
+            self._earlier: dict[str, frozenset] | None = pure_losses(self.losses)
         except NotCompilable as err:
             log.warning("train.compile: %s; the update step runs eagerly", err)
-            self._forms = None
+            self._earlier = None
 
     @classmethod
     def from_stepper(cls, stepper: MultiLossStepper, **kwargs) -> CompiledStepper:
         """The compiled version of an eager stepper (same losses, optimisers and schedules)."""
         return cls(stepper.losses, stepper.optimizers, stepper.schedulers, **kwargs)
 
-    @property
-    def forms(self) -> dict[str, Any] | None:
-        """The losses' compiled forms (``None`` once the stepper runs eagerly)."""
-        return self._forms
-
-    def _parameters(self) -> dict[str, dict[str, nn.Parameter]]:
-        return {name: form.parameters() for name, form in self._forms.items()}
-
     def _build(self, device: torch.device):
         mode = self.mode or ("reduce-overhead" if device.type == "cuda" else None)
-        update = _with_own_code(update_gradients(self._forms), f"compiled_update_{next(_STEPPERS)}")
+        update = _with_own_code(update_gradients(self.losses), f"compiled_update_{next(_STEPPERS)}")
         return torch.compile(update, mode=mode, fullgraph=True, dynamic=False)
 
     def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
-        if self._forms is None:
+        if self._earlier is None:
             return super().step(trainer, sub_batch)
-        parameters = self._parameters()
+        parameters = step_parameters(self.losses)
         device = next(p for ps in parameters.values() for p in ps.values()).device
         rng = random_streams(device)
-        inputs = {name: form.inputs(sub_batch) for name, form in self._forms.items()}
+        inputs = step_inputs(self.losses, self._earlier, sub_batch)
         try:
             if self._fn is None:
                 self._fn = self._build(device)
@@ -238,7 +252,7 @@ class CompiledStepper(MultiLossStepper):
             if self.compiled:
                 raise
             warn_not_compiled("the update step", err)
-            self._forms, self._fn = None, None
+            self._earlier, self._fn = None, None
             set_random_streams(device, rng)
             return super().step(trainer, sub_batch)
         if not self.compiled:  # the step compiles: from now on Adam runs as one fused kernel too

@@ -3,7 +3,7 @@ step vmapped over it and compiled once.
 
 :class:`VectorizedStepper` takes one stepper per seed (the same algorithm, built the same way, each with its own
 initial weights) and steps all of them at once. The update of a step is the compiled step's pure function
-(:func:`~spoil_torchrl.trainers.compiled.update_gradients` of the losses' compiled forms) under
+(:func:`~spoil_torchrl.trainers.compiled.update_gradients` of the losses' ``terms``) under
 :func:`torch.vmap`: every parameter becomes one tensor ``[seeds, ...]``, every input one tensor ``[seeds,
 batch, ...]`` (each seed on its own batch), and one optimiser per seed-optimiser steps the stacked parameters.
 Adam and SGD are elementwise, so one optimiser over stacked parameters is one optimiser per seed.
@@ -27,17 +27,20 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
+from spoil_torchrl.objectives.pure import NotCompilable
 from spoil_torchrl.trainers.compiled import (
     _with_own_code,
     detached,
+    pure_losses,
     random_streams,
     set_gradients,
     set_random_streams,
+    step_inputs,
+    step_parameters,
     update_gradients,
     use_fused_adam,
     warn_not_compiled,
 )
-from spoil_torchrl.trainers.compiled_forms import NotCompilable, compiled_forms
 from spoil_torchrl.trainers.offline import MultiLossStepper, StepEvery
 
 
@@ -46,8 +49,8 @@ class NotVectorizable(ValueError):
 
 
 def _settings(loss: nn.Module, per_seed: frozenset) -> dict[str, Any]:
-    """The plain settings of a loss (numbers, strings, flags, its tensor keys) that its compiled form reads as
-    constants, i.e. all but those the form takes per seed from the batch (``per_seed``)."""
+    """The plain settings of a loss (numbers, strings, flags, its tensor keys) that its ``terms`` read as
+    constants, i.e. all but those it takes per seed from its inputs (``per_seed``)."""
     plain = (bool, int, float, str, type(None))
     out = {k: v for k, v in vars(loss).items() if isinstance(v, plain) and k not in per_seed}
     keys = getattr(loss, "tensor_keys", None)
@@ -56,25 +59,25 @@ def _settings(loss: nn.Module, per_seed: frozenset) -> dict[str, Any]:
     return out
 
 
-def _check_same(forms: Sequence[Mapping[str, Any]], seeds: Sequence[int]) -> None:
-    """Every seed's losses are the first seed's up to their parameters (and what a form takes per seed)."""
-    first = forms[0]
-    for seed, seed_forms in zip(seeds[1:], forms[1:], strict=True):
-        if list(seed_forms) != list(first):
-            raise NotVectorizable(f"seed {seed} trains other losses ({list(seed_forms)} vs {list(first)})")
-        for name, form in seed_forms.items():
+def _check_same(losses: Sequence[Mapping[str, nn.Module]], seeds: Sequence[int]) -> None:
+    """Every seed's losses are the first seed's up to their parameters (and what a loss takes per seed)."""
+    first = losses[0]
+    for seed, seed_losses in zip(seeds[1:], losses[1:], strict=True):
+        if list(seed_losses) != list(first):
+            raise NotVectorizable(f"seed {seed} trains other losses ({list(seed_losses)} vs {list(first)})")
+        for name, loss in seed_losses.items():
             ref = first[name]
-            if type(form) is not type(ref):
-                raise NotVectorizable(f"seed {seed}: loss {name!r} is a {type(form).__name__}")
-            shapes = {k: tuple(p.shape) for k, p in form.parameters().items()}
-            if shapes != {k: tuple(p.shape) for k, p in ref.parameters().items()}:
+            if type(loss) is not type(ref):
+                raise NotVectorizable(f"seed {seed}: loss {name!r} is a {type(loss).__name__}")
+            shapes = {k: tuple(p.shape) for k, p in loss.term_parameters().items()}
+            if shapes != {k: tuple(p.shape) for k, p in ref.term_parameters().items()}:
                 raise NotVectorizable(f"seed {seed}: loss {name!r} has other parameter shapes")
-            per_seed = frozenset(getattr(form, "per_seed", ()))
-            mine, theirs = _settings(form.loss, per_seed), _settings(ref.loss, per_seed)
+            per_seed = frozenset(getattr(loss, "per_seed", ()))
+            mine, theirs = _settings(loss, per_seed), _settings(ref, per_seed)
             differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
             if differ:
                 raise NotVectorizable(
-                    f"seed {seed}: {type(form.loss).__name__} {name!r} has other settings ({', '.join(differ)})"
+                    f"seed {seed}: {type(loss).__name__} {name!r} has other settings ({', '.join(differ)})"
                 )
 
 
@@ -210,27 +213,28 @@ class VectorizedStepper(MultiLossStepper):
         if any(s.schedulers for s in steppers):
             raise NotVectorizable("learning-rate schedules are not vectorised")
         try:
-            self.forms = [compiled_forms(s.losses) for s in steppers]
+            self.earlier = [pure_losses(s.losses) for s in steppers]
         except NotCompilable as err:
             raise NotVectorizable(str(err)) from None
-        _check_same(self.forms, self.seeds)
+        _check_same([s.losses for s in steppers], self.seeds)
         self.steppers = list(steppers)
-        names = self.forms[0]
+        names = steppers[0].losses
         self.params = {  # loss name -> parameter name -> stacked leaf [seeds, ...]
-            name: {key: self._seeds_values(name, key) for key in names[name].parameters()} for name in names
+            name: {key: self._seeds_values(name, key) for key in names[name].term_parameters()}
+            for name in names
         }
         stacked_of = [  # per seed: id(the seed's parameter) -> the stacked parameter
             {
                 id(p): self.params[name][key]
-                for name, form in f.items()
-                for key, p in form.parameters().items()
+                for name, ps in step_parameters(s.losses).items()
+                for key, p in ps.items()
             }
-            for f in self.forms
+            for s in steppers
         ]
         counts = {len(s.optimizers) for s in steppers}
         if len(counts) != 1:
             raise NotVectorizable("the seeds have different numbers of optimisers")
-        for i in range(len(self.forms)):
+        for i in range(len(steppers)):
             missing = [
                 p
                 for o in steppers[i].optimizers
@@ -239,7 +243,7 @@ class VectorizedStepper(MultiLossStepper):
                 if id(p) not in stacked_of[i]
             ]
             if missing:
-                raise NotVectorizable("an optimiser steps a parameter that no loss's compiled form holds")
+                raise NotVectorizable("an optimiser steps a parameter that no loss's terms differentiate")
         self.stacked = [
             _StackedOptimizer([s.optimizers[j] for s in steppers], stacked_of)
             for j in range(len(steppers[0].optimizers))
@@ -262,7 +266,7 @@ class VectorizedStepper(MultiLossStepper):
 
     def _seeds_values(self, name: str, key: str) -> torch.Tensor:
         """Parameter ``key`` of loss ``name`` of every seed's stepper, stacked along a leading seed dimension."""
-        return torch.stack([f[name].parameters()[key].detach() for f in self.forms])
+        return torch.stack([s.losses[name].term_parameters()[key].detach() for s in self.steppers])
 
     def _build(self):
         mode = self.mode or ("reduce-overhead" if self.device.type == "cuda" else None)
@@ -276,15 +280,15 @@ class VectorizedStepper(MultiLossStepper):
         outer = random_streams(self.device)
         per_seed = []
         try:
-            for i, (forms, batch) in enumerate(zip(self.forms, batches, strict=True)):
+            for i, (stepper, batch) in enumerate(zip(self.steppers, batches, strict=True)):
                 set_random_streams(self.device, self.rng_states[i])
-                per_seed.append({name: form.inputs(batch) for name, form in forms.items()})
+                per_seed.append(step_inputs(stepper.losses, self.earlier[i], batch))
                 self.rng_states[i] = random_streams(self.device)
         finally:
             set_random_streams(self.device, outer)
         return {
             name: {key: torch.stack([x[name][key] for x in per_seed]) for key in per_seed[0][name]}
-            for name in self.forms[0]
+            for name in self.steppers[0].losses
         }
 
     def batch(self, batches: Sequence[TensorDictBase]) -> TensorDict:
@@ -325,9 +329,9 @@ class VectorizedStepper(MultiLossStepper):
     def sync(self) -> None:
         """Write the stacked parameters and optimiser states back into every seed's stepper."""
         with torch.no_grad():
-            for i, forms in enumerate(self.forms):
-                for name, form in forms.items():
-                    for key, p in form.parameters().items():
+            for i, stepper in enumerate(self.steppers):
+                for name, ps in step_parameters(stepper.losses).items():
+                    for key, p in ps.items():
                         p.copy_(self.params[name][key][i])
         for o in self.stacked:
             o.write_to_seeds()

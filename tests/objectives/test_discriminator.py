@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from spoil_torchrl.modules import make_discriminator
 from spoil_torchrl.objectives import LogRatio, PUDiscriminatorLoss, pu_log_ratio
 from tests.conftest import ACT_DIM, OBS_DIM
+from tests.objectives.contract import assert_compiles_whole, assert_keyword_call_matches
 
 
 def _loss(**kwargs) -> PUDiscriminatorLoss:
@@ -94,11 +95,9 @@ def test_missing_role_is_a_clear_error(batch):
         _loss()(batch)
 
 
-def test_keyword_call_without_tensordict(batch):
+def test_keyword_call_gives_the_tensordict_calls_outputs(batch):
     loss = _loss()
-    kwargs = {"_".join(key): batch.get(key) for key in loss.in_keys}
-    out = loss(**kwargs)
-    assert isinstance(out, tuple) and len(out) == len(loss.out_keys)
+    assert_keyword_call_matches(loss, batch)
 
 
 def test_gradient_penalty_is_differentiable(batch):
@@ -195,12 +194,9 @@ def test_pu_mode_needs_mean_reduction_and_converts_log_ratios(batch):
     assert plain.log_ratio_fn is None and plain.out_keys == ["lr"]
 
 
-def test_compiles_with_the_gradient_penalty(batch):
+def test_update_compiles_as_one_graph_with_the_gradient_penalty(batch):
     loss = _loss(gradient_penalty=10.0)
-    compiled = torch.compile(loss, backend="aot_eager")
-    out = compiled(batch)
-    (out["loss_positive"] + out["loss_unlabeled"] + out["loss_gradient_penalty"]).backward()
-    assert all(p.grad is not None for p in loss.parameters())
+    assert_compiles_whole(loss, batch)
 
 
 def test_gradient_penalty_is_the_two_sided_one_on_a_linear_discriminator(batch):

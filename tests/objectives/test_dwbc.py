@@ -18,6 +18,7 @@ from spoil_torchrl.objectives import (
     log_prob_feature,
 )
 from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
+from tests.objectives.contract import assert_compiles_whole, assert_keyword_call_matches
 
 ALPHA, ETA = 7.5, 0.5
 
@@ -193,11 +194,9 @@ def test_state_dict_round_trip(batch):
         torch.testing.assert_close(a(batch)[key], b(batch)[key])
 
 
-def test_keyword_call_without_tensordict(batch):
+def test_keyword_call_gives_the_tensordict_calls_outputs(batch):
     loss = _loss()
-    kwargs = {"_".join(key): batch.get(key) for key in loss.in_keys}
-    loss_discriminator, loss_actor, *_ = loss(**kwargs)
-    assert math.isfinite(loss_discriminator.item()) and math.isfinite(loss_actor.item())
+    assert_keyword_call_matches(loss, batch)
 
 
 def test_joint_training_keeps_the_expert_like_samples_and_clones_them():
@@ -239,3 +238,7 @@ def test_joint_training_keeps_the_expert_like_samples_and_clones_them():
     with torch.no_grad(), loss.actor_network_params.to_module(loss.actor_network):
         mean = loss.actor_network.get_dist(batch["expert"].select("observation")).mean
     assert float(mean.mean()) > 0.4
+
+
+def test_update_compiles_as_one_graph(batch):
+    assert_compiles_whole(_loss(), batch)

@@ -16,6 +16,7 @@ from spoil_torchrl.objectives import (
     safedice_reward,
 )
 from tests.conftest import ACT_DIM, OBS_DIM, transitions
+from tests.objectives.contract import assert_compiles_whole, assert_keyword_call_matches
 
 GAMMA, ALPHA = 0.9, 0.3
 
@@ -270,8 +271,10 @@ def test_state_dict_round_trip(batch):
     torch.testing.assert_close(a(batch)["loss_nu"], b(batch)["loss_nu"])
 
 
-def test_keyword_call_without_tensordict(batch):
+def test_keyword_call_gives_the_tensordict_calls_outputs(batch):
     loss = _loss()
-    kwargs = {"_".join(key): batch.get(key) for key in loss.in_keys}
-    loss_nu, *_ = loss(**kwargs)
-    assert math.isfinite(loss_nu.item())
+    assert_keyword_call_matches(loss, batch)
+
+
+def test_update_compiles_as_one_graph(batch):
+    assert_compiles_whole(_loss(), batch)

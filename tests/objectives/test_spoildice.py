@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from tests.conftest import ACT_DIM, OBS_DIM
+from tests.objectives.contract import assert_compiles_whole, assert_keyword_call_matches
 
 GAMMA = 0.9
 
@@ -184,11 +183,9 @@ def test_state_dict_round_trip_includes_lambda(batch):
     torch.testing.assert_close(a(batch)["loss_nu"], b(batch)["loss_nu"])
 
 
-def test_keyword_call_without_tensordict(batch):
+def test_keyword_call_gives_the_tensordict_calls_outputs(batch):
     loss = _loss()
-    kwargs = {"_".join(key): batch.get(key) for key in loss.in_keys}
-    loss_nu, loss_lambda, *_ = loss(**kwargs)
-    assert math.isfinite(loss_nu.item()) and math.isfinite(loss_lambda.item())
+    assert_keyword_call_matches(loss, batch)
 
 
 def test_lambda_grows_while_weight_sits_off_support(batch):
@@ -227,10 +224,6 @@ def test_non_binary_support_and_flat_terminated_are_rejected(batch):
         _loss()(flat)
 
 
-def test_compiles_with_the_gradient_penalty(batch):
+def test_update_compiles_as_one_graph_with_the_gradient_penalty(batch):
     loss = _loss(gradient_penalty=10.0)
-    compiled = torch.compile(loss, backend="aot_eager")
-    out = compiled(batch)
-    (out["loss_nu"] + out["loss_lambda"]).backward()
-    assert loss.lagrange.grad is not None
-    assert all(p.grad is not None for p in loss.nu_network_params.values(True, True))
+    assert_compiles_whole(loss, batch)

@@ -7,9 +7,12 @@ import logging
 
 import pytest
 import torch
+from tensordict import TensorDict
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictSequential
+from torchrl.objectives import LossModule
 
 from spoil_torchrl.modules import make_actor
-from spoil_torchrl.objectives import WeightedBCLoss
+from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from spoil_torchrl.precision import (
     REDUCED_PRECISION_ERROR,
     matmul_precision,
@@ -85,21 +88,76 @@ def test_compiled_steps_are_deterministic(batches):
         assert torch.equal(second[key], value), key
 
 
-def test_a_loss_without_compiled_form_runs_eagerly_and_says_so(caplog, batches):
-    class UsersOwnBC(WeightedBCLoss):
-        """A user's subclass: the compiled forms are registered by exact class, so it has none."""
+def test_a_subclass_of_a_loss_compiles_and_trains_as_its_parent(batches):
+    class UsersOwnSpoilDICE(SpoilDICELoss):
+        """A user's subclass: the compiled step calls the methods it inherits."""
+
+    def build(cls):
+        losses, optimizers = spoildice("normal", 1e-4)
+        dice = losses["dice"]
+        own = cls(dice.nu_network, gradient_penalty=dice.gradient_penalty)
+        own.load_state_dict(dice.state_dict())
+        optimizers[0] = torch.optim.SGD(own.nu_network_params.values(True, True), lr=1e-2)
+        optimizers[1] = torch.optim.SGD([own.lagrange], lr=1e-2)
+        return {"dice": own, "actor": losses["actor"]}, optimizers
+
+    stepper = CompiledStepper(*build(UsersOwnSpoilDICE))
+    _, params, _ = run(stepper, batches)
+    _, parent_params, _ = run(CompiledStepper(*build(SpoilDICELoss)), batches)
+    assert stepper.compiled
+    for key, value in parent_params.items():
+        assert torch.equal(params[key], value), key
+
+
+def test_a_loss_without_a_pure_form_runs_eagerly_and_says_so(caplog, batches):
+    class UsersOwnBC(LossModule):
+        """A user's LossModule with a forward only (no inputs / terms split)."""
+
+        def __init__(self, actor):
+            super().__init__()
+            self.convert_to_functional(actor, "actor_network")
+
+        def forward(self, td):
+            role = td["performant"]
+            with self.actor_network_params.to_module(self.actor_network):
+                dist = self.actor_network.get_dist(role.select("observation"))
+            return TensorDict({"loss_actor": -dist.log_prob(role["action"]).mean()}, [])
 
     def build():
         torch.manual_seed(3)
-        loss = UsersOwnBC(make_actor(OBS_DIM, ACT_DIM, hidden_cells=(16,)), role="performant")
+        loss = UsersOwnBC(make_actor(OBS_DIM, ACT_DIM, hidden_cells=(16,)))
         return {"actor": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)]
 
     with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
         stepper = CompiledStepper(*build())
-    assert "UsersOwnBC has no compiled form; the update step runs eagerly" in caplog.text
+    assert (
+        "UsersOwnBC has no inputs / terms split (not a PureLoss); the update step runs eagerly" in caplog.text
+    )
     _, eager_params, _ = run(MultiLossStepper(*build()), batches)
     _, params, _ = run(stepper, batches)
     assert not stepper.compiled and not stepper.optimizers[0].param_groups[0]["fused"]
+    for key, value in eager_params.items():
+        assert torch.equal(params[key], value), key
+
+
+def test_a_network_the_pure_form_cannot_call_trains_eagerly_and_says_so(caplog, batches):
+    def build():
+        torch.manual_seed(3)
+        actor = make_actor(OBS_DIM, ACT_DIM, hidden_cells=(16,))
+        wrapped = ProbabilisticTensorDictSequential(
+            TensorDictSequential(actor.module[0]), actor.module[1]
+        )  # the network inside one more sequential: not one module wrapped in a TensorDictModule
+        loss = WeightedBCLoss(wrapped, role="performant")
+        return {"actor": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)]
+
+    with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
+        stepper = CompiledStepper(*build())
+    assert (
+        "is not a network followed by a loc/scale distribution; the update step runs eagerly" in caplog.text
+    )
+    _, eager_params, _ = run(MultiLossStepper(*build()), batches)
+    _, params, _ = run(stepper, batches)
+    assert not stepper.compiled
     for key, value in eager_params.items():
         assert torch.equal(params[key], value), key
 

@@ -100,7 +100,10 @@ def _assert_matches(stepper, outputs, alone) -> None:
         pytest.param(lambda: spoildice("tanh_normal", 0.0), id="spoildice-tanh-no-penalty"),
         pytest.param(demodice_s, id="demodice-s"),
         pytest.param(safedice, id="safedice"),
-        pytest.param(lambda: coptidice(0.01), id="coptidice"),
+        # without chi: on these random batches chi's worst case puts all its mass on one of two near-tied
+        # samples (KL = log 64, the maximum), so which one wins, and chi's next gradient, turns on the last bit;
+        # chi is compared with the eager step in test_compiled.py, over fewer steps
+        pytest.param(lambda: coptidice(0.0), id="coptidice-no-chi"),
         pytest.param(filtered_bc, id="filtered-bc"),
         pytest.param(dwbc, id="dwbc"),
         pytest.param(discriminators, id="discriminators"),
