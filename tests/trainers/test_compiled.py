@@ -109,6 +109,18 @@ def test_a_subclass_of_a_loss_compiles_and_trains_as_its_parent(batches):
         assert torch.equal(params[key], value), key
 
 
+def _assert_trains_eagerly(build, batches, caplog, why: str) -> None:
+    """A CompiledStepper of ``build()`` says ``why`` once and trains as the eager stepper, bit for bit."""
+    with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
+        stepper = CompiledStepper(*build())
+    assert f"{why}; the update step runs eagerly" in caplog.text
+    _, eager_params, _ = run(MultiLossStepper(*build()), batches)
+    _, params, _ = run(stepper, batches)
+    assert not stepper.compiled and not stepper.optimizers[0].param_groups[0]["fused"]
+    for key, value in eager_params.items():
+        assert torch.equal(params[key], value), key
+
+
 def test_a_loss_without_a_pure_form_runs_eagerly_and_says_so(caplog, batches):
     class UsersOwnBC(LossModule):
         """A user's LossModule with a forward only (no inputs / terms split)."""
@@ -128,16 +140,7 @@ def test_a_loss_without_a_pure_form_runs_eagerly_and_says_so(caplog, batches):
         loss = UsersOwnBC(make_actor(OBS_DIM, ACT_DIM, hidden_cells=(16,)))
         return {"actor": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)]
 
-    with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
-        stepper = CompiledStepper(*build())
-    assert (
-        "UsersOwnBC has no inputs / terms split (not a PureLoss); the update step runs eagerly" in caplog.text
-    )
-    _, eager_params, _ = run(MultiLossStepper(*build()), batches)
-    _, params, _ = run(stepper, batches)
-    assert not stepper.compiled and not stepper.optimizers[0].param_groups[0]["fused"]
-    for key, value in eager_params.items():
-        assert torch.equal(params[key], value), key
+    _assert_trains_eagerly(build, batches, caplog, "UsersOwnBC has no inputs / terms split (not a PureLoss)")
 
 
 def test_a_network_the_pure_form_cannot_call_trains_eagerly_and_says_so(caplog, batches):
@@ -150,16 +153,7 @@ def test_a_network_the_pure_form_cannot_call_trains_eagerly_and_says_so(caplog, 
         loss = WeightedBCLoss(wrapped, role="performant")
         return {"actor": loss}, [torch.optim.Adam(loss.parameters(), lr=1e-3)]
 
-    with caplog.at_level(logging.WARNING, logger="spoil_torchrl.trainers.compiled"):
-        stepper = CompiledStepper(*build())
-    assert (
-        "is not a network followed by a loc/scale distribution; the update step runs eagerly" in caplog.text
-    )
-    _, eager_params, _ = run(MultiLossStepper(*build()), batches)
-    _, params, _ = run(stepper, batches)
-    assert not stepper.compiled
-    for key, value in eager_params.items():
-        assert torch.equal(params[key], value), key
+    _assert_trains_eagerly(build, batches, caplog, "is not a network followed by a loc/scale distribution")
 
 
 def test_a_step_that_fails_to_compile_runs_eagerly_from_the_same_random_state(caplog, monkeypatch, batches):
