@@ -25,8 +25,8 @@ from omegaconf import DictConfig
 
 from spoil_torchrl.data import ensure_generated, get_generated, load_episodes, read_metadata, segment_pools
 from spoil_torchrl.eval import policy_table
+from spoil_torchrl.runs.settings import SettingsError, check_settings
 from spoil_torchrl.tasks import UnknownDatasetError
-from spoil_torchrl.trainers.settings import SettingsError, check_settings
 
 log = logging.getLogger(__name__)
 

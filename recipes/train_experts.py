@@ -25,18 +25,18 @@ from omegaconf import DictConfig, OmegaConf
 from spoil_torchrl.envs import log_mujoco_warnings, make_env
 from spoil_torchrl.experts import PPOConfig, train_ppo
 from spoil_torchrl.experts.ppo import resumable_state
-from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
-from spoil_torchrl.trainers import stop_on_signals
-from spoil_torchrl.trainers.checkpoint import CheckpointError
-from spoil_torchrl.trainers.outcome import ended_in_one_line
-from spoil_torchrl.trainers.run_dir import (
+from spoil_torchrl.runs.checkpoint import CheckpointError
+from spoil_torchrl.runs.directory import (
     RunDirError,
     claim_run_dir,
     release_run_dir,
     run_status,
     write_hydra_record,
 )
-from spoil_torchrl.trainers.settings import SettingsError, check_settings
+from spoil_torchrl.runs.outcome import ended_in_one_line
+from spoil_torchrl.runs.settings import SettingsError, check_settings
+from spoil_torchrl.tasks import UnknownDatasetError, get_env_task
+from spoil_torchrl.trainers import stop_on_signals
 
 log = logging.getLogger(__name__)
 

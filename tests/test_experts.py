@@ -222,7 +222,7 @@ def test_sigterm_keeps_the_batch_it_arrived_in_and_resumes_from_it(tmp_path, mon
 
 @needs_safety_gymnasium
 def test_resume_refuses_other_settings(tmp_path):
-    from spoil_torchrl.trainers.checkpoint import CheckpointError
+    from spoil_torchrl.runs.checkpoint import CheckpointError
 
     _train(tmp_path, _tiny_config(total_frames=1000))
     with pytest.raises(CheckpointError, match="ppo.actor_lr"):

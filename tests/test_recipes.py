@@ -421,7 +421,7 @@ def test_report_refuses_to_average_runs_of_different_data(tmp_path):
 def test_a_run_of_an_overridden_source_is_named_after_it():
     from omegaconf import OmegaConf
 
-    from spoil_torchrl.trainers.settings import name_dataset_by_source
+    from spoil_torchrl.runs.settings import name_dataset_by_source
 
     cfg = OmegaConf.create({"dataset": {"name": "point-circle1-mixed", "source": "file:/d/mine.hdf5"}})
     name_dataset_by_source(cfg, ["dataset.source=file:/d/mine.hdf5", "seed=1"])

@@ -105,7 +105,7 @@ def _same_run(a: Path, b: Path) -> None:
 
 
 def test_a_run_killed_mid_training_resumes_bit_exactly(tmp_path, tiny_pc1_dataset, uninterrupted):
-    from spoil_torchrl.trainers.run_dir import run_status
+    from spoil_torchrl.runs.directory import run_status
 
     run_dir = tmp_path / "run"
     _kill_when(tiny_pc1_dataset, run_dir, lambda d: _evaluations(d) >= 2)
@@ -200,7 +200,7 @@ def _same_final_evaluation(run_dir: Path, results: dict) -> None:
 
 
 def _step(checkpoint: Path) -> int | None:
-    from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint
+    from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint
 
     try:
         return int(load_checkpoint(checkpoint)["step"])

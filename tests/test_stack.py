@@ -70,8 +70,8 @@ def test_a_file_from_another_stack_is_flagged_and_recorded(tmp_path, tiny_pc1_da
 
 
 def test_a_run_does_not_resume_on_another_stack():
-    from spoil_torchrl.trainers.checkpoint import CheckpointError
-    from spoil_torchrl.trainers.resume import check_resumable
+    from spoil_torchrl.runs.checkpoint import CheckpointError
+    from spoil_torchrl.runs.resume import check_resumable
 
     check_resumable({"config_yaml": "seed: 0", "results": {"stack": current_stack()}}, "seed: 0", "run")
     check_resumable({"config_yaml": "seed: 0", "results": {}}, "seed: 0", "run")  # made before records

@@ -32,7 +32,7 @@ import torch
 
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order
 from spoil_torchrl.eval.tables import mean_stderr
-from spoil_torchrl.trainers.run_dir import run_status
+from spoil_torchrl.runs.directory import run_status
 
 #: What the figures and tables show, per seed the mean of its last evaluations (``results.json`` ``aggregate``).
 METRICS = ("normalized_feasible_return", "normalized_cost")

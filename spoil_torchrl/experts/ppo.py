@@ -14,7 +14,7 @@ episode still running when the batch is full is cut there (its last step bootstr
 limit). So a batch depends only on the weights and the random-number state at its start, and a run resumes
 exactly (``resume=True``) from its training state, written atomically every ``checkpoint_every`` batches (and
 after the batch in which SIGTERM arrived, :func:`~spoil_torchrl.trainers.stop_on_signals`)
-(:data:`~spoil_torchrl.trainers.run_dir.CHECKPOINT_NAME`): a resumed run's policies equal an uninterrupted
+(:data:`~spoil_torchrl.runs.directory.CHECKPOINT_NAME`): a resumed run's policies equal an uninterrupted
 run's. The policy checkpoints ``ckpt_<frames>.pt`` (actor weights plus the batch's mean episode return and cost)
 are written at the same batches, so the four policy types of the paper can be picked from them afterwards.
 """
@@ -40,13 +40,13 @@ from spoil_torchrl.experts.lockstep import LockstepCollector
 from spoil_torchrl.experts.ppo_update import PPOLearner, ppo_update
 from spoil_torchrl.experts.replay import ReplayRecorder
 from spoil_torchrl.files import write_atomic
+from spoil_torchrl.runs.checkpoint import load_checkpoint, save_checkpoint
+from spoil_torchrl.runs.directory import CHECKPOINT_NAME
+from spoil_torchrl.runs.results import write_json
+from spoil_torchrl.runs.resume import check_resumable
 from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
-from spoil_torchrl.trainers.checkpoint import load_checkpoint, save_checkpoint
 from spoil_torchrl.trainers.offline import raise_if_stopped, stop_requested
-from spoil_torchrl.trainers.resume import check_resumable
-from spoil_torchrl.trainers.run_dir import CHECKPOINT_NAME
-from spoil_torchrl.trainers.run_results import write_json
 
 
 @dataclass
@@ -212,8 +212,8 @@ def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, inde
 
 def resumable_state(run_dir: str | Path, config: PPOConfig) -> dict:
     """The training state of ``run_dir``, refused
-    (:class:`~spoil_torchrl.trainers.checkpoint.CheckpointError`) unless it was made with ``config`` on this
-    software stack (:func:`~spoil_torchrl.trainers.resume.check_resumable`, as for the main recipe's runs):
+    (:class:`~spoil_torchrl.runs.checkpoint.CheckpointError`) unless it was made with ``config`` on this
+    software stack (:func:`~spoil_torchrl.runs.resume.check_resumable`, as for the main recipe's runs):
     what ``resume=true`` continues from. The expert recipe calls it inside its claim of the run directory, so a
     refused resume writes nothing there."""
     run_dir = Path(run_dir)
@@ -251,7 +251,7 @@ def train_ppo(
             with the batch's episode statistics; loadable with ``weights_only=True``), ``log.jsonl`` (one line
             per batch: frames, mean episode return and cost, lambda, seconds), ``config.json``,
             ``results.json`` (``status``: training, finished, interrupted or failed), the training state
-            (:data:`~spoil_torchrl.trainers.run_dir.CHECKPOINT_NAME`) and, with ``record_episodes``, ``replay/``.
+            (:data:`~spoil_torchrl.runs.directory.CHECKPOINT_NAME`) and, with ``record_episodes``, ``replay/``.
         progress: a progress bar over all frames of the run (a resumed run starts it where it stopped), with
             its ETA.
         resume: continue from the training state in ``out_dir`` (same ``config``, same software stack).

@@ -91,8 +91,8 @@ def test_offline_trainer_runs_the_steps_and_the_hooks():
 
 
 def test_builders_train_spoildice_and_bc(tiny_pc1_dataset):
+    from spoil_torchrl.algorithms import ALGORITHMS, BuildContext
     from spoil_torchrl.data import DualDemoBuffers, load_episodes
-    from spoil_torchrl.trainers.algorithms import ALGORITHMS
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
@@ -114,7 +114,7 @@ def test_builders_train_spoildice_and_bc(tiny_pc1_dataset):
             "steps": 5,
         },
     }
-    training = ALGORITHMS["spoildice"](cfg, buffers, 28, 2, progress=False)
+    training = ALGORITHMS["spoildice"](cfg, BuildContext(buffers, 28, 2, progress=False))
     unlabeled = buffers["unlabeled"].storage[:]
     assert {"log_ratio_performant", "safe_support"} <= set(unlabeled.keys())
     assert 0.0 < training.diagnostics["support_share_unlabeled"] <= 1.0
@@ -123,13 +123,15 @@ def test_builders_train_spoildice_and_bc(tiny_pc1_dataset):
     with training.policy() as policy:
         td = policy(TensorDict({"observation": torch.zeros(3, 28)}, [3]))
     assert td["action"].shape == (3, 2)
-    bc = ALGORITHMS["bc"]({"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}, buffers, 28, 2)
+    bc = ALGORITHMS["bc"](
+        {"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}, BuildContext(buffers, 28, 2)
+    )
     assert set(bc.stepper.step(None, buffers.sample()).keys()) >= {"actor.loss_actor"}
 
 
 def test_filtered_bc_builders_weight_by_the_estimated_supports(tiny_pc1_dataset):
+    from spoil_torchrl.algorithms import ALGORITHMS, BuildContext
     from spoil_torchrl.data import DualDemoBuffers, load_episodes
-    from spoil_torchrl.trainers.algorithms import ALGORITHMS
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     # safe: the safe-high episodes 0-2; performant: safe-high 2 and unsafe-high 6-7 (ids by policy type)
@@ -146,12 +148,12 @@ def test_filtered_bc_builders_weight_by_the_estimated_supports(tiny_pc1_dataset)
         "gradient_penalty": {"performant": 0.0, "safe": 0.0},
     }
     common = {"distribution": "normal", "hidden_cells": [16], "kappa": 0.01, "actor_lr": 1e-3}
-    fbc = ALGORITHMS["fbc"]({**common, "discriminator": disc}, buffers, 28, 2, progress=False)
+    fbc = ALGORITHMS["fbc"]({**common, "discriminator": disc}, BuildContext(buffers, 28, 2, progress=False))
     support = buffers["performant"].storage[:]["safe_support"]
     assert set(support.unique().tolist()) <= {0.0, 1.0}
     assert fbc.diagnostics["support_share_performant"] == pytest.approx(float(support.float().mean()))
     assert fbc.policy_loss.tensor_keys.weight == "safe_support"
-    jfbc = ALGORITHMS["jfbc"]({**common, "discriminator": disc}, buffers, 28, 2, progress=False)
+    jfbc = ALGORITHMS["jfbc"]({**common, "discriminator": disc}, BuildContext(buffers, 28, 2, progress=False))
     unlabeled = buffers["unlabeled"].storage[:]
     assert torch.equal(unlabeled["jfbc_weight"], unlabeled["safe_support"] * unlabeled["performant_support"])
     out = jfbc.stepper.step(None, buffers.sample())
@@ -172,15 +174,15 @@ def _dice_baseline_cfg(penalties: dict) -> dict:
 
 
 def test_builders_train_demodice_s_and_u(tiny_pc1_dataset):
+    from spoil_torchrl.algorithms import ALGORITHMS, BuildContext, train_discriminators
     from spoil_torchrl.data import DualDemoBuffers, load_episodes
-    from spoil_torchrl.trainers.algorithms import ALGORITHMS, train_discriminators
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
     buffers = DualDemoBuffers(episodes, roles, batch_size=64, seed=0)
     cfg = _dice_baseline_cfg({"performant": 10.0})
 
-    demo_s = ALGORITHMS["demodice_s"](cfg, buffers, 28, 2, progress=False)
+    demo_s = ALGORITHMS["demodice_s"](cfg, BuildContext(buffers, 28, 2, progress=False))
     assert "log_ratio_performant_safe" in buffers["safe"].storage[:].keys()
     assert "log_ratio_performant_safe" not in buffers["unlabeled"].storage[:].keys()
     dice = demo_s.stepper.losses["dice"]
@@ -199,19 +201,18 @@ def test_builders_train_demodice_s_and_u(tiny_pc1_dataset):
     # DemoDICE-S's discriminator is trained against D_S (not D_U): its logit is log d_P / d_S
     discs = train_discriminators(
         cfg["discriminator"] | {"steps": 1},
-        buffers,
-        28,
-        2,
+        BuildContext(buffers, 28, 2, progress=False),
         positives=("performant",),
         against="safe",
-        progress=False,
     )
     assert discs["performant"].tensor_keys.unlabeled == "safe"
 
     with pytest.raises(ValueError, match="no coefficient for \\['safe'\\]"):
-        ALGORITHMS["demodice_u"](cfg, buffers, 28, 2, progress=False)  # DemoDICE-U also trains C_S
+        ALGORITHMS["demodice_u"](
+            cfg, BuildContext(buffers, 28, 2, progress=False)
+        )  # DemoDICE-U also trains C_S
     cfg_u = _dice_baseline_cfg({"performant": 10.0, "safe": 0.0})
-    demo_u = ALGORITHMS["demodice_u"](cfg_u, buffers, 28, 2, progress=False)
+    demo_u = ALGORITHMS["demodice_u"](cfg_u, BuildContext(buffers, 28, 2, progress=False))
     unlabeled = buffers["unlabeled"].storage[:]
     # DemoDICE-U regularises toward d_S like DemoDICE-S, sampling D_U: reward log r_P + alpha log r_S
     torch.testing.assert_close(
@@ -228,19 +229,21 @@ def test_builders_train_demodice_s_and_u(tiny_pc1_dataset):
 
 
 def test_builder_trains_safedice_with_a_nonpreferred_role(tiny_pc1_dataset):
+    from spoil_torchrl.algorithms import ALGORITHMS, BuildContext
     from spoil_torchrl.data import DualDemoBuffers, load_episodes
     from spoil_torchrl.objectives import safedice_auto_alpha
-    from spoil_torchrl.trainers.algorithms import ALGORITHMS
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
     cfg = _dice_baseline_cfg({"nonpreferred": 10.0}) | {"alpha": "auto", "standardize_reward": True}
     with pytest.raises(ValueError, match="nonpreferred"):
-        ALGORITHMS["safedice"](cfg, DualDemoBuffers(episodes, roles, batch_size=64), 28, 2, progress=False)
+        ALGORITHMS["safedice"](
+            cfg, BuildContext(DualDemoBuffers(episodes, roles, batch_size=64), 28, 2, progress=False)
+        )
 
     # D_N: the unsafe-high and unsafe-medium episodes (ids 6-11 of the tiny file)
     buffers = DualDemoBuffers(episodes, roles | {"nonpreferred": torch.arange(6, 12)}, batch_size=64, seed=0)
-    training = ALGORITHMS["safedice"](cfg, buffers, 28, 2, progress=False)
+    training = ALGORITHMS["safedice"](cfg, BuildContext(buffers, 28, 2, progress=False))
     unlabeled = buffers["unlabeled"].storage[:]
     probability = torch.sigmoid(unlabeled["log_ratio_nonpreferred"].double())
     alpha = training.diagnostics["alpha"]
@@ -253,7 +256,7 @@ def test_builder_trains_safedice_with_a_nonpreferred_role(tiny_pc1_dataset):
     assert float(out["dice.clipped_fraction"]) == 0.0  # the auto alpha fits every unlabeled sample
     # a fixed alpha and no standardisation
     fixed = ALGORITHMS["safedice"](
-        cfg | {"alpha": 0.2, "standardize_reward": False}, buffers, 28, 2, progress=False
+        cfg | {"alpha": 0.2, "standardize_reward": False}, BuildContext(buffers, 28, 2, progress=False)
     )
     assert fixed.stepper.losses["dice"].alpha == 0.2 and fixed.stepper.losses["dice"].reward_std == 1.0
 
@@ -276,9 +279,9 @@ def test_step_every_steps_on_every_nth_call_and_keeps_its_count():
 
 
 def test_builder_trains_dwbc_s_jointly(tiny_pc1_dataset):
+    from spoil_torchrl.algorithms import ALGORITHMS, BuildContext
     from spoil_torchrl.data import DualDemoBuffers, load_episodes
     from spoil_torchrl.objectives import DWBCLoss
-    from spoil_torchrl.trainers.algorithms import ALGORITHMS
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     roles = {
@@ -297,7 +300,7 @@ def test_builder_trains_dwbc_s_jointly(tiny_pc1_dataset):
         "actor_lr": 1e-3,
         "discriminator": {"hidden_cells": [16], "lr": 1e-3, "update_interval": 3},
     }
-    training = ALGORITHMS["dwbc_s"](cfg, buffers, 28, 2, progress=False)
+    training = ALGORITHMS["dwbc_s"](cfg, BuildContext(buffers, 28, 2, progress=False))
     loss = training.policy_loss
     assert isinstance(loss, DWBCLoss) and training.stepper.losses == {"dwbc": loss}
     assert loss.tensor_keys.expert == "performant" and loss.tensor_keys.unlabeled == "safe"
@@ -320,13 +323,15 @@ def test_builder_trains_dwbc_s_jointly(tiny_pc1_dataset):
         td = policy(TensorDict({"observation": torch.zeros(3, 28)}, [3]))
     assert td["action"].shape == (3, 2)
     with pytest.raises(ValueError, match="nonpreferred"):
-        ALGORITHMS["dwbc_s"](cfg | {"unlabeled": "nonpreferred"}, buffers, 28, 2, progress=False)
+        ALGORITHMS["dwbc_s"](
+            cfg | {"unlabeled": "nonpreferred"}, BuildContext(buffers, 28, 2, progress=False)
+        )
 
 
 def test_builder_trains_coptidice_with_the_episode_constraint(tiny_pc1_dataset):
+    from spoil_torchrl.algorithms import ALGORITHMS, BuildContext, EpisodeConstraint
     from spoil_torchrl.data import DualDemoBuffers, load_episodes
     from spoil_torchrl.objectives import per_step_cost_limit
-    from spoil_torchrl.trainers.algorithms import ALGORITHMS, EpisodeConstraint
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     roles = {"safe": torch.tensor([0, 1]), "performant": torch.tensor([6, 7]), "unlabeled": torch.arange(12)}
@@ -345,9 +350,11 @@ def test_builder_trains_coptidice_with_the_episode_constraint(tiny_pc1_dataset):
         "actor_lr": 1e-3,
     }
     with pytest.raises(ValueError, match="cost limit"):
-        ALGORITHMS["coptidice"](cfg, buffers, 28, 2, progress=False)
+        ALGORITHMS["coptidice"](cfg, BuildContext(buffers, 28, 2, progress=False))
     constraint = EpisodeConstraint(cost_threshold=40.0, episode_length=500)
-    training = ALGORITHMS["coptidice"](cfg, buffers, 28, 2, progress=False, constraint=constraint)
+    training = ALGORITHMS["coptidice"](
+        cfg, BuildContext(buffers, 28, 2, progress=False, constraint=constraint)
+    )
     dice = training.stepper.losses["dice"]
     assert dice.cost_limit == pytest.approx(per_step_cost_limit(40.0, 500, 0.99))
     assert training.diagnostics["cost_limit"] == dice.cost_limit
@@ -359,5 +366,5 @@ def test_builder_trains_coptidice_with_the_episode_constraint(tiny_pc1_dataset):
     assert all(torch.isfinite(out[f"dice.{k}"]) for k in ("loss_nu", "loss_chi", "loss_tau", "loss_lagrange"))
     assert float(out["actor.weight_mean"]) == pytest.approx(1.0, rel=1e-5)
     assert dice.lagrange.item() != lagrange  # lambda has its optimiser
-    fixed = ALGORITHMS["coptidice"](cfg | {"cost_limit": 0.05}, buffers, 28, 2, progress=False)
+    fixed = ALGORITHMS["coptidice"](cfg | {"cost_limit": 0.05}, BuildContext(buffers, 28, 2, progress=False))
     assert fixed.stepper.losses["dice"].cost_limit == 0.05

@@ -33,7 +33,7 @@ from pathlib import Path
 
 from torchrl.record.loggers import Logger, get_logger
 
-from spoil_torchrl.trainers.settings import SettingsError
+from spoil_torchrl.runs.settings import SettingsError
 
 __all__ = [
     "LOGGER_PACKAGES",
@@ -56,7 +56,7 @@ DEFAULT_PROJECT = "spoil_torchrl"
 
 def check_logger_available(kind: str | None) -> None:
     """Refuse a logger type TorchRL does not know, or one whose package is not installed (a
-    :class:`~spoil_torchrl.trainers.settings.SettingsError` saying what installs it)."""
+    :class:`~spoil_torchrl.errors.SettingsError` saying what installs it)."""
     if kind in NO_LOGGER or kind == "csv":
         return
     if kind not in LOGGER_PACKAGES:

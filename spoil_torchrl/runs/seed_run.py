@@ -32,12 +32,12 @@ from spoil_torchrl.eval.dice_diagnostics import (
 from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.experts import save_policy
 from spoil_torchrl.precision import matmul_check
-from spoil_torchrl.trainers.algorithms import PolicyTraining
-from spoil_torchrl.trainers.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from spoil_torchrl.algorithms import PolicyTraining
+from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from spoil_torchrl.trainers.offline import DIVERGED_ADVICE
-from spoil_torchrl.trainers.resume import csv_row_counts
-from spoil_torchrl.trainers.run_dir import CHECKPOINT_NAME, write_lock
-from spoil_torchrl.trainers.run_results import aggregate, write_json
+from spoil_torchrl.runs.resume import csv_row_counts
+from spoil_torchrl.runs.directory import CHECKPOINT_NAME, write_lock
+from spoil_torchrl.runs.results import aggregate, write_json
 
 log = logging.getLogger(__name__)
 

@@ -12,20 +12,14 @@ import torch
 from tensordict import TensorDict
 
 from spoil_torchrl.data import DualDemoBuffers
-from spoil_torchrl.trainers.checkpoint import (
+from spoil_torchrl.runs.checkpoint import (
     CheckpointError,
     load_checkpoint,
     rng_state,
     save_checkpoint,
     set_rng_state,
 )
-from spoil_torchrl.trainers.resume import (
-    csv_row_counts,
-    pretraining_fingerprint,
-    settings_differ,
-    trim_csv_logs,
-)
-from spoil_torchrl.trainers.run_dir import (
+from spoil_torchrl.runs.directory import (
     CHECKPOINT_NAME,
     LOCK_NAME,
     RunDirError,
@@ -33,6 +27,12 @@ from spoil_torchrl.trainers.run_dir import (
     read_lock,
     release_run_dir,
     run_status,
+)
+from spoil_torchrl.runs.resume import (
+    csv_row_counts,
+    pretraining_fingerprint,
+    settings_differ,
+    trim_csv_logs,
 )
 
 
@@ -199,7 +199,7 @@ def test_a_requeued_cluster_job_takes_over_its_own_lock(tmp_path, monkeypatch):
 
 
 def test_the_seeds_continue_from_the_last_step_they_all_have(tmp_path):
-    from spoil_torchrl.trainers.seed_run import (
+    from spoil_torchrl.runs.seed_run import (
         PREVIOUS_CHECKPOINT,
         common_checkpoints,
         keep_previous_checkpoints,
@@ -292,9 +292,9 @@ def test_resume_auto_passes_over_a_finished_run_only_with_its_settings_and_stack
 
     import pytest
 
+    from spoil_torchrl.runs.directory import RunDirError
+    from spoil_torchrl.runs.resume import finished_already
     from spoil_torchrl.stack import current_stack
-    from spoil_torchrl.trainers.resume import finished_already
-    from spoil_torchrl.trainers.run_dir import RunDirError
 
     run = tmp_path / "cell"
     run.mkdir()

@@ -166,7 +166,7 @@ def claim_run_dir(
         >>> claim_run_dir(run_dir)  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        spoil_torchrl.trainers.run_dir.RunDirError: ... already holds a run (status killed)...
+        spoil_torchrl.runs.directory.RunDirError: ... already holds a run (status killed)...
     """
     if resume not in RESUME_CHOICES:
         raise RunDirError(f"resume must be one of true, false, auto; got {resume!r}")
@@ -295,13 +295,17 @@ def release_run_dir(run_dir: str | os.PathLike) -> None:
 def write_hydra_record(run_dir: str | os.PathLike, cfg) -> None:
     """Hydra's record of the command (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``), written by the
     recipe once it has claimed ``run_dir`` (its configs set ``hydra.output_subdir: null``, so Hydra itself
-    writes nothing into a directory before the claim: a refused command leaves a run's record as it was)."""
+    writes nothing into a directory before the claim: a refused command leaves a run's record as it was).
+    Outside a Hydra job (settings composed with ``hydra.compose`` by a script of one's own) the record is the
+    settings alone."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
-    hydra_cfg = HydraConfig.get()
     folder = Path(run_dir) / ".hydra"
     write_atomic(folder / "config.yaml", OmegaConf.to_yaml(cfg))
+    if not HydraConfig.initialized():
+        return
+    hydra_cfg = HydraConfig.get()
     write_atomic(folder / "hydra.yaml", OmegaConf.to_yaml(OmegaConf.create({"hydra": hydra_cfg})))
     write_atomic(folder / "overrides.yaml", OmegaConf.to_yaml(list(hydra_cfg.overrides.task)))
 

@@ -1,6 +1,6 @@
 """What a resumed run checks before it continues, and the logs it puts back to the checkpoint's step.
 
-A run resumes from the checkpoint of its last evaluation (:mod:`spoil_torchrl.trainers.checkpoint`). The
+A run resumes from the checkpoint of its last evaluation (:mod:`spoil_torchrl.runs.checkpoint`). The
 pre-training (discriminators, support cut, annotated buffers) is not stored: it is deterministic for a seed
 on one machine, so the resumed run does it again and compares :func:`pretraining_fingerprint` with the one in
 the checkpoint; the main stage's networks, optimisers, step counters and random-number streams come from
@@ -22,8 +22,8 @@ from omegaconf import OmegaConf
 
 from spoil_torchrl.files import update_digest, write_atomic
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
-from spoil_torchrl.trainers.checkpoint import CheckpointError
-from spoil_torchrl.trainers.run_dir import RunDirError, run_status
+from spoil_torchrl.runs.checkpoint import CheckpointError
+from spoil_torchrl.runs.directory import RunDirError, run_status
 
 #: Settings that may change between a run and its resumption (they do not change what is trained).
 RESUMABLE_CHANGES = ("progress",)
@@ -99,7 +99,7 @@ def check_resumable(
         >>> check_resumable(state, "seed: 0", "run")
         Traceback (most recent call last):
         ...
-        spoil_torchrl.trainers.checkpoint.CheckpointError: run: made on another software stack ...
+        spoil_torchrl.runs.checkpoint.CheckpointError: run: made on another software stack ...
     """
     differ = settings_differ(state["config_yaml"], config_yaml)
     if differ:
@@ -160,7 +160,7 @@ def finished_already(run_dir: str | os.PathLike, config_yaml: str, resume: bool 
     """The results of the run in ``run_dir`` when ``resume`` is ``"auto"`` and that run has finished with the
     settings ``config_yaml`` (its ``config.yaml``; :data:`RESUMABLE_CHANGES` aside): there is nothing to do, and
     a sweep started again passes over its finished cells. ``None`` otherwise (the run is started or resumed as
-    :func:`~spoil_torchrl.trainers.run_dir.claim_run_dir` decides). Nothing is written.
+    :func:`~spoil_torchrl.runs.directory.claim_run_dir` decides). Nothing is written.
 
     Raises:
         RunDirError: the finished run was made with other settings (a changed sweep that names its cells
@@ -178,7 +178,7 @@ def finished_already(run_dir: str | os.PathLike, config_yaml: str, resume: bool 
         >>> finished_already(run, "seed: 1", "auto")  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        spoil_torchrl.trainers.run_dir.RunDirError: ...: the run there has finished, with other settings (seed)...
+        spoil_torchrl.runs.directory.RunDirError: ...: the run there has finished, with other settings (seed)...
     """
     run_dir = Path(run_dir)
     if resume != "auto" or run_status(run_dir) != "finished":

@@ -15,11 +15,8 @@ from typing import Any
 
 from spoil_torchrl.data.parallel import available_cores
 from spoil_torchrl.data.prepare import SCHEMES
+from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.precision import MATMUL_PRECISIONS
-
-
-class SettingsError(ValueError):
-    """A setting with a value it cannot have."""
 
 
 def _number(value: Any) -> bool:
@@ -149,11 +146,11 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         >>> check_settings({"seed": 0, "threads": 1, "train": {"lr": 3e-4}, "algo": {"kappa": 1.5}})
         Traceback (most recent call last):
         ...
-        spoil_torchrl.trainers.settings.SettingsError: algo.kappa = 1.5: expected a quantile in (0, 1)
+        spoil_torchrl.errors.SettingsError: algo.kappa = 1.5: expected a quantile in (0, 1)
         >>> check_settings({"seeds": [0, 1, 1]})
         Traceback (most recent call last):
         ...
-        spoil_torchrl.trainers.settings.SettingsError: seeds = [0, 1, 1]: expected null or a list of distinct integers >= 0
+        spoil_torchrl.errors.SettingsError: seeds = [0, 1, 1]: expected null or a list of distinct integers >= 0
     """
     cores = available_cores()
     for key, check, expected in (

@@ -6,8 +6,8 @@ import importlib.util
 
 import pytest
 
-from spoil_torchrl.trainers.settings import SettingsError
-from spoil_torchrl.trainers.tracking import (
+from spoil_torchrl.runs.settings import SettingsError
+from spoil_torchrl.runs.tracking import (
     check_logger_available,
     flat_hparams,
     make_logger,

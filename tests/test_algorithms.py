@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from spoil_torchrl.algorithms import ALGORITHMS, BuildContext, dice
 from spoil_torchrl.data import DualDemoBuffers, load_episodes
-from spoil_torchrl.trainers import algorithms
-from spoil_torchrl.trainers.algorithms import ALGORITHMS
 
 
 def _buffers(dataset) -> DualDemoBuffers:
@@ -40,7 +39,7 @@ def test_spoildice_fits_its_support_cut_on_the_safe_demonstrations(tiny_pc1_data
     # Eq. (13): the cut is the kappa-quantile of C_S's log-ratio over D_S, so it keeps 1 - kappa of D_S
     # (ties aside); a cut fitted on D_U would keep 1 - kappa of D_U and far more of D_S, which C_S ranks high.
     buffers = _buffers(tiny_pc1_dataset)
-    ALGORITHMS["spoildice"](_spoildice_cfg(kappa=0.5), buffers, 28, 2, progress=False)
+    ALGORITHMS["spoildice"](_spoildice_cfg(kappa=0.5), BuildContext(buffers, 28, 2, progress=False))
     unlabeled = buffers["unlabeled"].storage[:]
     kept = unlabeled["safe_support"].reshape(-1).bool()
     in_safe = torch.isin(unlabeled["episode"].reshape(-1), torch.arange(0, 3))
@@ -50,28 +49,28 @@ def test_spoildice_fits_its_support_cut_on_the_safe_demonstrations(tiny_pc1_data
 
 def test_demodice_s_trains_its_discriminator_against_the_safe_demonstrations(tiny_pc1_dataset, monkeypatch):
     calls = []
-    real = algorithms.train_discriminators
+    real = dice.train_discriminators
 
     def spy(*args, **kwargs):
         calls.append(kwargs)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(algorithms, "train_discriminators", spy)
+    monkeypatch.setattr(dice, "train_discriminators", spy)  # where the DICE builders call it
     cfg = _spoildice_cfg(kappa=0.01) | {"alpha": 0.1, "nu_gradient_penalty": 1e-4}
     cfg["discriminator"] = cfg["discriminator"] | {"steps": 2}
-    ALGORITHMS["demodice_s"](cfg, _buffers(tiny_pc1_dataset), 28, 2, progress=False)
+    ALGORITHMS["demodice_s"](cfg, BuildContext(_buffers(tiny_pc1_dataset), 28, 2, progress=False))
     assert len(calls) == 1 and calls[0]["positives"] == ("performant",) and calls[0]["against"] == "safe"
     calls.clear()
-    ALGORITHMS["demodice_u"](cfg, _buffers(tiny_pc1_dataset), 28, 2, progress=False)
+    ALGORITHMS["demodice_u"](cfg, BuildContext(_buffers(tiny_pc1_dataset), 28, 2, progress=False))
     assert len(calls) == 1 and calls[0].get("against", "unlabeled") == "unlabeled"
 
 
 def test_fbc_with_the_oracle_support_keeps_exactly_the_safe_trajectories_of_d_p(tiny_pc1_dataset):
     import pytest
 
+    from spoil_torchrl.algorithms import EpisodeConstraint
     from spoil_torchrl.data import episode_stats
-    from spoil_torchrl.trainers.algorithms import EpisodeConstraint
-    from spoil_torchrl.trainers.settings import SettingsError
+    from spoil_torchrl.runs.settings import SettingsError
 
     episodes = load_episodes(f"file:{tiny_pc1_dataset}")
     cost = episode_stats(episodes)["cost"]
@@ -89,7 +88,9 @@ def test_fbc_with_the_oracle_support_keeps_exactly_the_safe_trajectories_of_d_p(
         "kappa": 0.01,
         "support": "oracle",
     }
-    training = ALGORITHMS["fbc"](cfg, buffers, 28, 2, progress=False, constraint=EpisodeConstraint(25.0, 500))
+    training = ALGORITHMS["fbc"](
+        cfg, BuildContext(buffers, 28, 2, progress=False, constraint=EpisodeConstraint(25.0, 500))
+    )
     stored = buffers["performant"].storage[:]
     expected = (cost[stored["episode"]] <= 25.0).float()
     assert stored["safe_support"].shape == stored["next", "reward"].shape
@@ -97,6 +98,6 @@ def test_fbc_with_the_oracle_support_keeps_exactly_the_safe_trajectories_of_d_p(
     assert 0 < float(expected.mean()) < 1  # both kinds present: the test can tell the weights apart
     assert training.diagnostics["support_share_performant"] == pytest.approx(float(expected.mean()))
     with pytest.raises(SettingsError, match="expected estimated or oracle"):
-        ALGORITHMS["fbc"]({**cfg, "support": "true"}, buffers, 28, 2, progress=False)
+        ALGORITHMS["fbc"]({**cfg, "support": "true"}, BuildContext(buffers, 28, 2, progress=False))
     with pytest.raises(ValueError, match="needs the cost limit"):
-        ALGORITHMS["fbc"](cfg, buffers, 28, 2, progress=False)
+        ALGORITHMS["fbc"](cfg, BuildContext(buffers, 28, 2, progress=False))

@@ -1,0 +1,193 @@
+"""What every algorithm builder shares: the run's :class:`BuildContext`, the :class:`PolicyTraining` it returns,
+and the pieces several builders assemble from (the actor, Adam, a weighted-BC main stage, a DICE main stage,
+the PU discriminators of stage 1 and the support cut of Eq. 13)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torchrl.modules import ProbabilisticActor
+from torchrl.objectives import LossModule
+
+from spoil_torchrl.data.buffers import DualDemoBuffers
+from spoil_torchrl.modules import ObservationNormalizer, make_actor, make_discriminator, with_observation_norm
+from spoil_torchrl.objectives import PUDiscriminatorLoss, SupportEstimator, WeightedBCLoss
+from spoil_torchrl.trainers.compiled import CompiledStepper
+from spoil_torchrl.trainers.offline import MultiLossStepper, offline_trainer
+
+
+@dataclass(frozen=True)
+class EpisodeConstraint:
+    """The run's safety constraint as the evaluation sees it: episodes of at most ``episode_length`` steps (the
+    task's time limit T) whose summed cost should stay within ``cost_threshold`` (the prepared dataset's)."""
+
+    cost_threshold: float
+    episode_length: int
+
+
+@dataclass
+class BuildContext:
+    """What a builder reads besides its own settings: the run's data and how to report.
+
+    Attributes:
+        buffers: D_S, D_P, D_U (and any extra role) and the initial states, one replay buffer each.
+        observation_dim: the size of a (standardised) observation.
+        action_dim: the size of an action.
+        constraint: the dataset's episode-cost threshold and the task's horizon (read by FBC's oracle ablation
+            and COptiDICE only).
+        logger: the TorchRL logger pre-training logs into (``None``: no log rows, e.g. a resumed run).
+        progress: whether pre-training shows a progress bar.
+
+    Examples:
+        >>> import numpy as np
+        >>> from spoil_torchrl.algorithms import ALGORITHMS, BuildContext
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> from spoil_torchrl.data.episodes import episodes_from_arrays
+        >>> n = 6
+        >>> episodes = episodes_from_arrays({
+        ...     "observations": np.random.randn(n, 3).astype(np.float32),
+        ...     "next_observations": np.random.randn(n, 3).astype(np.float32),
+        ...     "actions": np.zeros((n, 2), np.float32), "rewards": np.ones(n, np.float32),
+        ...     "costs": np.zeros(n, np.float32), "terminals": np.zeros(n, np.float32),
+        ...     "timeouts": np.array([0, 1, 0, 1, 0, 1], np.float32)})
+        >>> buffers = DualDemoBuffers(episodes, {"safe": [0], "performant": [1], "unlabeled": [0, 1, 2]},
+        ...                           batch_size=4)
+        >>> context = BuildContext(buffers, observation_dim=3, action_dim=2, progress=False)
+        >>> training = ALGORITHMS["bc"]({"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}, context)
+        >>> sorted(training.stepper.losses)
+        ['actor']
+    """
+
+    buffers: DualDemoBuffers
+    observation_dim: int
+    action_dim: int
+    constraint: EpisodeConstraint | None = None
+    logger: Any = None
+    progress: bool = True
+
+
+@dataclass
+class PolicyTraining:
+    """What the recipe trains in its main stage.
+
+    Attributes:
+        stepper: the optimisation step (losses in order, their optimisers and schedules).
+        policy_loss: the loss holding the policy (``actor_network`` / ``actor_network_params``).
+        diagnostics: extra numbers measured before the main stage (e.g. the support share of D_U).
+        dice: the DICE loss of the main stage, if any (it writes ``dice_weight`` / ``dice_advantage`` into
+            ``dice_role``'s transitions; :func:`~spoil_torchrl.eval.dice_diagnostics.dice_diagnostics` reads it).
+        dice_role: the role the DICE loss weights (D_U, or D_S for DemoDICE-S).
+        observation_norm: the statistics the training data were standardised with, if any.
+    """
+
+    stepper: MultiLossStepper
+    policy_loss: LossModule
+    diagnostics: dict[str, float]
+    dice: LossModule | None = None
+    dice_role: str | None = None
+    observation_norm: ObservationNormalizer | None = None
+
+    @contextlib.contextmanager
+    def policy(self) -> Iterator[ProbabilisticActor]:
+        """The current policy as a plain module (the loss's functional parameters put in place). When the
+        training data were standardised (``observation_norm``), the policy standardises raw observations
+        itself, so it can act in the environment and be saved as one self-contained file."""
+        loss = self.policy_loss
+        with loss.actor_network_params.to_module(loss.actor_network):
+            if self.observation_norm is None:
+                yield loss.actor_network
+            else:
+                yield with_observation_norm(loss.actor_network, self.observation_norm)
+
+
+def actor(cfg: Mapping[str, Any], context: BuildContext) -> ProbabilisticActor:
+    """The policy network of ``cfg`` (``hidden_cells``, ``distribution``) for the context's sizes."""
+    return make_actor(
+        context.observation_dim,
+        context.action_dim,
+        hidden_cells=tuple(cfg["hidden_cells"]),
+        distribution=cfg["distribution"],
+    )
+
+
+def adam(params, lr: float) -> torch.optim.Adam:
+    """Adam over ``params`` (every optimiser of the recipe's algorithms)."""
+    return torch.optim.Adam(list(params), lr=float(lr))
+
+
+def weighted_bc_stage(
+    cfg: Mapping[str, Any], context: BuildContext, role: str, weight: str | None, diagnostics: dict
+) -> PolicyTraining:
+    """A main stage of weighted BC alone (Eq. 20 on ``role`` with ``weight``): BC, FBC, JFBC."""
+    policy_loss = WeightedBCLoss(actor(cfg, context), role=role, weight=weight)
+    stepper = MultiLossStepper({"actor": policy_loss}, [adam(policy_loss.parameters(), cfg["actor_lr"])])
+    return PolicyTraining(stepper, policy_loss, diagnostics)
+
+
+def dice_stage(
+    cfg: Mapping[str, Any],
+    context: BuildContext,
+    dice: LossModule,
+    dual_optimizers: list[torch.optim.Optimizer],
+    role: str,
+    diagnostics: dict,
+) -> PolicyTraining:
+    """A DICE main stage: ``dice`` writes ``dice_weight`` into ``role`` and pi is weighted BC on it (Eq. 20);
+    the dual's optimisers step first, then the actor's."""
+    policy_loss = WeightedBCLoss(actor(cfg, context), role=role, weight="dice_weight")
+    optimizers = [*dual_optimizers, adam(policy_loss.parameters(), cfg["actor_lr"])]
+    stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
+    return PolicyTraining(stepper, policy_loss, diagnostics, dice=dice, dice_role=role)
+
+
+def train_discriminators(
+    cfg: Mapping[str, Any],
+    context: BuildContext,
+    *,
+    positives: tuple[str, ...] = ("performant", "safe"),
+    against: str = "unlabeled",
+) -> dict[str, PUDiscriminatorLoss]:
+    """Algorithm 1, "pretrain C_P and C_S": one :class:`PUDiscriminatorLoss` per positive role against
+    ``against`` (default ``"unlabeled"``: Eq. 16-17; DemoDICE-S uses ``"safe"``), trained for ``cfg["steps"]``
+    steps with Adam (``cfg["lr"]``) through the offline :class:`~torchrl.trainers.Trainer`.
+    ``cfg["gradient_penalty"]`` maps each positive role to its penalty coefficient (Table J: 10 for C_P, none
+    for C_S). ``cfg["compile"]`` (default false) steps them with a :class:`CompiledStepper`."""
+    penalties = cfg["gradient_penalty"]
+    missing = [role for role in positives if role not in penalties]
+    if missing:
+        raise ValueError(f"discriminator.gradient_penalty has no coefficient for {missing}")
+    losses = {
+        f"disc_{role}": PUDiscriminatorLoss(
+            make_discriminator(
+                context.observation_dim, context.action_dim, hidden_cells=tuple(cfg["hidden_cells"])
+            ),
+            positive=role,
+            unlabeled=against,
+            gradient_penalty=float(penalties[role]),
+        )
+        for role in positives
+    }
+    optimizers = [adam(loss.parameters(), cfg["lr"]) for loss in losses.values()]
+    stepper_class = CompiledStepper if cfg.get("compile", False) else MultiLossStepper
+    trainer = offline_trainer(
+        stepper_class(losses, optimizers),
+        context.buffers.sample,
+        total_steps=int(cfg["steps"]),
+        steps_per_batch=min(100, int(cfg["steps"])),
+        logger=context.logger,
+        progress_bar=context.progress,
+        progress_label=f"pre-training {', '.join(f'C_{role[0].upper()}' for role in positives)}",
+    )
+    trainer.train()
+    return {name.removeprefix("disc_"): loss for name, loss in losses.items()}
+
+
+def fit_support(
+    loss: PUDiscriminatorLoss, buffers: DualDemoBuffers, role: str, kappa: float, out_key: str
+) -> SupportEstimator:
+    """Eq. (13) on ``role``'s discriminator: the kappa-quantile cut of its log-ratio over ``role``'s data."""
+    return SupportEstimator(loss.frozen_network(), kappa=kappa, out_key=out_key).fit(buffers[role].storage[:])
