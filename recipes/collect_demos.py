@@ -68,9 +68,9 @@ def replay_dataset(cfg: DictConfig) -> None:
         replay_subsets,
         stats_table,
     )
-    from spoil_torchrl.experts import zoo_names
     from spoil_torchrl.experts.replay import write_replay_dataset
     from spoil_torchrl.tasks import get_env_task
+    from spoil_torchrl.zoo import zoo_names
 
     if not cfg.get("env_id"):
         raise SettingsError("replay=... needs env_id=<the task the expert was trained in>")

@@ -5,7 +5,7 @@
 
 ``--figure`` reads the cells of a paper experiment (``experiment=...``) instead: per level and method the mean ±
 s.e. over seeds, averaged over the tasks present and per task, the aggregate statistics
-(:func:`spoil_torchrl.eval.experiments.experiment_statistics`) and the figure
+(:func:`spoil_torchrl.runs.experiments.experiment_statistics`) and the figure
 (:func:`spoil_torchrl.eval.figures.plot_levels`).
 
 Every ``results.json`` under the given folders with ``status == "finished"`` counts. Per dataset and algorithm,
@@ -35,8 +35,8 @@ from pathlib import Path
 import torch
 
 from spoil_torchrl.eval import mean_stderr
-from spoil_torchrl.eval.experiments import finished_results, train_section
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
+from spoil_torchrl.runs.experiments import finished_results, train_section
 from spoil_torchrl.stack import stack_label, stack_name
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
@@ -283,13 +283,13 @@ def write_outputs(text: str, out: Path | None, figures: list[tuple[Path | None, 
 
 def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """``--figure``: a paper experiment's tables and statistics (printed, and into ``--out``) and figure."""
-    from spoil_torchrl.eval.experiments import (
+    from spoil_torchrl.eval.figures import plot_levels
+    from spoil_torchrl.runs.experiments import (
         experiment_markdown,
         experiment_statistics,
         figure_panels,
         load_experiment,
     )
-    from spoil_torchrl.eval.figures import plot_levels
 
     if args.curves or args.latest:
         parser.error("--curves and --latest are not available with --figure")

@@ -4,7 +4,7 @@
     python recipes/score_checkpoints.py runs/experts/pc1_ppo/ckpt_000150000.pt --episodes 50
 
 Each checkpoint (``ckpt_*.pt`` of ``recipes/train_experts.py``, or a zoo policy file) is rolled out for
-``--episodes`` episodes with sampled actions, as the data is collected (:func:`spoil_torchrl.data.collect.rollout`,
+``--episodes`` episodes with sampled actions, as the data is collected (:func:`spoil_torchrl.envs.rollout.rollout`,
 seeded), and one markdown row is printed per checkpoint: training frames, mean ± standard error of return,
 feasible return and cost over the episodes, and the share of episodes whose cost exceeds the task's limit.
 ``--every`` keeps every k-th checkpoint of a folder. ``safe-high`` is then the checkpoint with the best return
@@ -20,11 +20,11 @@ from pathlib import Path
 
 import torch
 
-from spoil_torchrl.data.collect import rollout
 from spoil_torchrl.data.episodes import episodes_from_arrays
+from spoil_torchrl.envs.rollout import rollout
 from spoil_torchrl.eval import mean_stderr, transition_episode_metrics
-from spoil_torchrl.experts.policies import PolicyFileError, load_policy
 from spoil_torchrl.tasks import get_env_task
+from spoil_torchrl.zoo.policy_files import PolicyFileError, load_policy
 
 
 def checkpoints(paths: list[Path], every: int) -> list[Path]:

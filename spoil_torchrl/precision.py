@@ -16,7 +16,7 @@ error against float64: 4e-6, against 2e-6 for MKL; CONTRIBUTING.md, "Matmul prec
 take bfloat16 kernels instead (relative errors of ~1e-2). :func:`matmul_relative_error` measures which of the
 two a machine does; the main recipe records it in ``results.json`` and says so when products lose precision.
 The recipe applies the level to training (pre-training and the main stage) only, and every policy rollout
-(:func:`~spoil_torchrl.data.collect.rollout`: generated datasets, evaluations) computes IEEE products whatever the
+(:func:`~spoil_torchrl.envs.rollout.rollout`: generated datasets, evaluations) computes IEEE products whatever the
 level, so neither a cached dataset nor an evaluation depends on it.
 """
 

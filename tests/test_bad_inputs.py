@@ -17,11 +17,11 @@ import torch
 from spoil_torchrl.data import DualDemoBuffers, load_episodes
 from spoil_torchrl.data.episodes import DatasetError, select_episodes
 from spoil_torchrl.data.hdf5 import METADATA_ATTR, read_metadata, write_dsrl_file
-from spoil_torchrl.experts import PolicyFileError, load_policy, save_policy
 from spoil_torchrl.modules import make_actor
 from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from spoil_torchrl.runs.settings import SettingsError, check_settings
 from spoil_torchrl.tasks import UnknownDatasetError
+from spoil_torchrl.zoo import PolicyFileError, load_policy, save_policy
 from tests.data.helpers import make_arrays
 
 ROOT = Path(__file__).resolve().parents[1]

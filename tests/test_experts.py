@@ -116,9 +116,9 @@ def _without_times(path):
 @pytest.mark.parametrize(("normalize", "num_envs"), [(False, 1), (True, 1), (False, 2)])
 def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeypatch, normalize, num_envs):
     # num_envs=2: every batch from two environments in lockstep, 500 frames (one episode) each
-    from spoil_torchrl.experts import load_policy
     from spoil_torchrl.experts import ppo as ppo_module
     from spoil_torchrl.experts.replay import read_replay
+    from spoil_torchrl.zoo import load_policy
 
     _train(
         tmp_path / "whole",
@@ -252,7 +252,7 @@ def test_ppo_config_refuses_impossible_sizes():
     "env_id", ["SafetyPointCircle1-v0", "SafetyPointCircle2-v0", "SafetyHalfCheetahVelocity-v1"]
 )
 def test_zoo_has_the_four_policy_types(env_id):
-    from spoil_torchrl.experts import load_policy, zoo_names, zoo_policy
+    from spoil_torchrl.zoo import load_policy, zoo_names, zoo_policy
 
     names = zoo_names(env_id)
     assert {"safe-high", "safe-medium", "unsafe-high", "unsafe-medium"} <= set(names)
@@ -265,7 +265,7 @@ def test_zoo_has_the_four_policy_types(env_id):
 
 
 def test_zoo_policies_load_with_weights_only_and_check_the_task():
-    from spoil_torchrl.experts import PolicyFileError, load_policy, zoo_policy
+    from spoil_torchrl.zoo import PolicyFileError, load_policy, zoo_policy
 
     actor, meta = load_policy(
         zoo_policy("SafetyPointCircle1-v0", "safe-high"), env_id="SafetyPointCircle1-v0"
@@ -278,9 +278,9 @@ def test_zoo_policies_load_with_weights_only_and_check_the_task():
 
 
 def test_load_policy_reads_raw_training_checkpoints_and_rejects_junk(tmp_path):
-    from spoil_torchrl.experts import PolicyFileError, export_checkpoint, load_policy
-    from spoil_torchrl.experts import policies as policies_module
     from spoil_torchrl.modules import make_actor
+    from spoil_torchrl.zoo import PolicyFileError, export_checkpoint, load_policy
+    from spoil_torchrl.zoo import policy_files as policies_module
 
     actor = make_actor(17, 6, hidden_cells=(16, 8))
     torch.save({"actor": actor.state_dict(), "frames": 10, "episode_return": 1.5}, tmp_path / "ckpt.pt")

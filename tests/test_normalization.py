@@ -8,14 +8,14 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from spoil_torchrl.data import fit_observation_normalizer, standardize_observations
-from spoil_torchrl.experts import load_policy, save_policy
-from spoil_torchrl.experts.policies import PolicyFileError, weights_digest
 from spoil_torchrl.modules import (
     ObservationNormalizer,
     make_actor,
     observation_normalizer_of,
     with_observation_norm,
 )
+from spoil_torchrl.zoo import load_policy, save_policy
+from spoil_torchrl.zoo.policy_files import PolicyFileError, weights_digest
 
 OBS, ACT = 28, 2
 

@@ -60,11 +60,38 @@ def test_the_wheel_carries_recipes_configs_and_experts(installed):
         "spoil_torchrl/configs/algo/spoildice.yaml",
         "spoil_torchrl/configs/hydra/job_logging/spoil.yaml",
         "spoil_torchrl/configs/hydra/launcher/slurm.yaml",
-        "spoil_torchrl/experts/zoo/SafetyPointCircle1-v0/safe-high.pt",
+        "spoil_torchrl/zoo/SafetyPointCircle1-v0/safe-high.pt",
+        "spoil_torchrl/dsrl_datasets.csv",
     ):
         assert needed in names, needed
     configs = {n for n in names if n.startswith("spoil_torchrl/configs/") and n.endswith(".yaml")}
     assert len(configs) == len(list((ROOT / "configs").rglob("*.yaml")))
+
+
+def test_the_installed_dsrl_table_is_the_checkouts(installed):
+    """The installed package reads its DSRL table from the package data, with a header row of field names."""
+    _, target = installed
+    code = (
+        "import spoil_torchrl.tasks as t; from importlib import resources; "
+        "text = resources.files('spoil_torchrl').joinpath(t.DSRL_TABLE).read_text(); "
+        "print(t.__file__); print(len(t.DSRL_DATASETS)); print(text.splitlines()[0])"
+    )
+    env = {**os.environ, "PYTHONPATH": str(target)}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=target
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    where, count, header = proc.stdout.splitlines()
+    assert where.startswith(str(target)) and int(count) == 38
+    assert header == (ROOT / "spoil_torchrl" / "dsrl_datasets.csv").read_text().splitlines()[0]
+    assert header.split(",")[:6] == [
+        "dataset_id",
+        "suite",
+        "file_name",
+        "episode_length",
+        "max_return",
+        "min_return",
+    ]
 
 
 def test_installed_train_composes_its_config_from_the_package(installed, tmp_path):

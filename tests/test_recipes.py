@@ -87,8 +87,8 @@ def _dsrl_recipe(tmp_path, dataset, *overrides):
 
 def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     from spoil_torchrl.eval import read_rollouts
-    from spoil_torchrl.experts import load_policy
     from spoil_torchrl.stack import current_stack
+    from spoil_torchrl.zoo import load_policy
 
     proc, results = _dsrl_recipe(
         tmp_path, tiny_pc1_dataset, "train.compile=true", "train.matmul_precision=medium"
@@ -126,7 +126,7 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
 
 
 def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
-    from spoil_torchrl.experts import load_policy
+    from spoil_torchrl.zoo import load_policy
 
     _, results = _dsrl_recipe(
         tmp_path, tiny_pc1_dataset, "algo=bc", "logger=none", "normalize_observations=false"

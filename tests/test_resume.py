@@ -182,7 +182,7 @@ def _same_final_evaluation(run_dir: Path, results: dict) -> None:
     from omegaconf import OmegaConf
 
     from spoil_torchrl.eval import Evaluator
-    from spoil_torchrl.experts import load_policy
+    from spoil_torchrl.zoo import load_policy
 
     cfg = OmegaConf.load(run_dir / "config.yaml")
     policy, meta = load_policy(run_dir / "checkpoints" / "policy.pt")

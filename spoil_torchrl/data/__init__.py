@@ -1,7 +1,7 @@
 """Datasets: loading (DSRL layout), IL-SP labelling, controlled mixes and dual-demonstration buffers."""
 
 from spoil_torchrl.data.buffers import DualDemoBuffers
-from spoil_torchrl.data.collect import Segment, collect, rollout, segment_pools
+from spoil_torchrl.data.collect import Segment, collect, segment_pools
 from spoil_torchrl.data.download import download, sha256_of
 from spoil_torchrl.data.episodes import (
     DSRL_KEYS,
@@ -49,7 +49,6 @@ __all__ = [
     "ensure_generated",
     "generated_path",
     "get_generated",
-    "rollout",
     "segment_pools",
     "POOLS",
     "DatasetError",

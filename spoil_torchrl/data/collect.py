@@ -15,22 +15,18 @@ from __future__ import annotations
 import functools
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDict
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 from tqdm.auto import tqdm
 
 from spoil_torchrl.data.hdf5 import write_dsrl_file
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
-from spoil_torchrl.divergence import check_finite
-from spoil_torchrl.precision import intra_op_threads, matmul_precision
+from spoil_torchrl.envs.rollout import derive_seed, episode_totals, rollout
 from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
 
@@ -43,7 +39,7 @@ SHARED_STEPS = 50_000
 
 #: What a rollout worker imports when it starts (:class:`~spoil_torchrl.data.parallel.RolloutPool`'s
 #: ``warm_up``): this module and the simulators.
-ROLLOUT_MODULES = ("spoil_torchrl.data.collect", "spoil_torchrl.envs")
+ROLLOUT_MODULES = ("spoil_torchrl.data.collect", "spoil_torchrl.envs", "spoil_torchrl.envs.rollout")
 
 
 @dataclass(frozen=True)
@@ -53,7 +49,7 @@ class Segment:
     Attributes:
         label: the policy type or pool name, e.g. ``"safe-high"`` (several segments may share a label).
         policy: ``"random"``, ``"zoo:<name>"`` (a committed policy of the task, see
-            :func:`spoil_torchrl.experts.zoo_policy`) or the path of a policy / PPO checkpoint file.
+            :func:`spoil_torchrl.zoo.zoo_policy`) or the path of a policy / PPO checkpoint file.
         episodes: how many episodes to roll out.
     """
 
@@ -68,7 +64,7 @@ class Segment:
 
 def resolve_policy(spec: str, env_id: str) -> ProbabilisticActor | None:
     """The actor a :class:`Segment` ``policy`` names (``None`` for the random policy)."""
-    from spoil_torchrl.experts.policies import load_policy, zoo_policy
+    from spoil_torchrl.zoo.policy_files import load_policy, zoo_policy
 
     if spec == RANDOM_POLICY:
         return None
@@ -76,173 +72,10 @@ def resolve_policy(spec: str, env_id: str) -> ProbabilisticActor | None:
     return load_policy(path, env_id=env_id)[0]
 
 
-def _derive_seed(seed: int, *keys: int) -> int:
-    return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0])
-
-
-def reset_seed(seed: int, env_index: int) -> int:
-    """The seed :func:`rollout` (with ``seed``) resets its environment ``env_index`` with, once, at the start;
-    later episodes of that environment continue its random stream unseeded. Replays of a rollout start here."""
-    return _derive_seed(seed, 3, env_index)
-
-
-def rollout(
-    env_id: str,
-    policy: ProbabilisticActor | None,
-    episodes: int,
-    *,
-    seed: int,
-    num_envs: int = 8,
-    deterministic: bool = False,
-    progress: bool = True,
-    desc: str | None = None,
-    bar: tqdm | None = None,
-    record: Callable[[Any], np.ndarray] | None = None,
-) -> dict[str, np.ndarray]:
-    """Run ``episodes`` episodes of ``policy`` (``None``: uniform random actions) and return DSRL arrays.
-
-    Args:
-        env_id: a task of :data:`spoil_torchrl.tasks.ENV_TASKS`.
-        policy: a TorchRL actor reading ``"observation"`` and writing ``"action"``.
-        episodes: number of complete episodes.
-        seed: seeds the environments' resets and the action sampling.
-        num_envs: environments stepped in lockstep (the policy runs once per step on all of them).
-        deterministic: take the policy's deterministic action (evaluation) instead of sampling it.
-        progress, desc: a progress bar of its own, labelled ``desc``;
-        bar: or advance this (the caller's) bar instead, showing ``desc`` beside it (one bar over many calls).
-        record: called with the environment before each step; its results, stacked, are returned as
-            ``"recorded"`` (one row per transition), e.g. the agent's pose for the rollout file
-            (:func:`~spoil_torchrl.eval.env_scene.agent_pose`).
-
-    The episodes depend on these arguments only: the rollout draws from its own random stream and computes the
-    policy's float32 products in IEEE precision on one thread, whatever the caller's
-    :func:`torch.set_float32_matmul_precision` and :func:`torch.set_num_threads` (a training's
-    ``train.matmul_precision`` and ``threads`` change neither a generated dataset nor an evaluation, and a
-    rollout in another process gives the same arrays).
-
-    Returns:
-        ``observations``, ``next_observations``, ``actions``, ``rewards``, ``costs`` (float32), ``terminals``,
-        ``timeouts`` (bool), episodes back to back in the order they finished. Actions are clipped to the
-        action bounds (a no-op for tanh-squashed policies).
-    """
-    from spoil_torchrl.envs import make_safety_gymnasium
-
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-    task = get_env_task(env_id)
-    envs = [make_safety_gymnasium(env_id) for _ in range(min(num_envs, episodes))]
-    rng = np.random.default_rng(_derive_seed(seed, 1))
-    device = next(iter(policy.parameters())).device if policy is not None else torch.device("cpu")
-    obs = [env.reset(seed=reset_seed(seed, i))[0] for i, env in enumerate(envs)]
-    steps: list[list[tuple]] = [[] for _ in envs]
-    finished: list[list[tuple]] = []
-    active, started = list(range(len(envs))), len(envs)
-    own_bar = bar is None
-    if own_bar:
-        bar = tqdm(
-            total=episodes * task.episode_length, desc=desc or env_id, disable=not progress, unit="step"
-        )
-    elif desc:
-        bar.set_postfix_str(desc)
-    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    # The caller's random stream, float32 matmul precision and threads (e.g. a training's) leave the episodes
-    # untouched.
-    with (
-        torch.random.fork_rng(devices=[]),
-        matmul_precision("highest"),
-        intra_op_threads(1),
-        torch.no_grad(),
-        set_exploration_type(mode),
-    ):
-        torch.manual_seed(_derive_seed(seed, 4))
-        while active:
-            batch = np.stack([obs[i] for i in active]).astype(np.float32)
-            if policy is None:
-                low, high = envs[0].action_space.low, envs[0].action_space.high
-                actions = rng.uniform(low, high, size=(len(active), *low.shape)).astype(np.float32)
-            else:
-                td = TensorDict(
-                    {"observation": torch.from_numpy(batch)}, batch_size=[len(active)], device=device
-                )
-                # an unbounded (Normal) policy's action is clipped to the bounds, and stored clipped
-                space = envs[0].action_space
-                actions = policy(td)["action"].cpu().numpy()
-                # a NaN action makes MuJoCo reset the simulation: its episodes would look costless
-                check_finite("the policy's action", actions, f"{env_id} rollout", "the policy diverged")
-                actions = np.clip(actions, space.low, space.high)
-            still = []
-            for j, i in enumerate(active):
-                seen = None if record is None else record(envs[i])
-                next_obs, reward, terminated, truncated, info = envs[i].step(actions[j])
-                steps[i].append(
-                    (
-                        batch[j],
-                        next_obs,
-                        actions[j],
-                        reward,
-                        float(info["cost"][0]),
-                        terminated,
-                        truncated,
-                        seen,
-                    )
-                )
-                if terminated or truncated:
-                    finished.append(steps[i])
-                    # the bar counts T steps per episode: an episode that ends early moves it by T as well
-                    bar.update(task.episode_length)
-                    steps[i] = []
-                    if started < episodes:
-                        obs[i] = envs[i].reset()[0]
-                        started += 1
-                        still.append(i)
-                else:
-                    obs[i] = next_obs
-                    still.append(i)
-            active = still
-    if own_bar:
-        bar.close()
-    for env in envs:
-        env.close()
-    flat = [s for episode in finished for s in episode]
-    columns = list(zip(*flat, strict=True))
-    return {
-        "observations": np.stack(columns[0]).astype(np.float32),
-        "next_observations": np.stack(columns[1]).astype(np.float32),
-        "actions": np.stack(columns[2]).astype(np.float32),
-        "rewards": np.asarray(columns[3], dtype=np.float32),
-        "costs": np.asarray(columns[4], dtype=np.float32),
-        "terminals": np.asarray(columns[5], dtype=bool),
-        "timeouts": np.asarray(columns[6], dtype=bool),
-        **({} if record is None else {"recorded": np.stack(columns[7])}),
-    }
-
-
-def episode_bounds(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """``(starts, ends)`` row indices of the episodes of DSRL arrays (episodes back to back; an episode ends
-    at a terminal or timeout flag, ``ends`` exclusive).
-
-    Examples:
-        >>> episode_bounds({"terminals": np.array([0, 1, 0, 0]), "timeouts": np.array([0, 0, 0, 1])})
-        (array([0, 2]), array([2, 4]))
-    """
-    ends = np.flatnonzero(np.asarray(arrays["terminals"]) | np.asarray(arrays["timeouts"])) + 1
-    return np.concatenate([[0], ends[:-1]]).astype(ends.dtype), ends
-
-
-def episode_totals(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Per-episode undiscounted return and cost of DSRL arrays (float64)."""
-    starts, _ = episode_bounds(arrays)
-    rewards = np.add.reduceat(arrays["rewards"].astype(np.float64), starts)
-    costs = np.add.reduceat(arrays["costs"].astype(np.float64), starts)
-    return rewards, costs
-
-
 def reference_policies(env_id: str) -> dict[str, str | None]:
     """The policies whose mean returns normalise a generated dataset's returns: the random policy, and the
     committed ``safe-high`` policy where the task has one (``None`` where it has not)."""
-    from spoil_torchrl.experts.policies import zoo_names
+    from spoil_torchrl.zoo.policy_files import zoo_names
 
     safe_high = "zoo:safe-high" if "safe-high" in zoo_names(env_id) else None
     return {"random_return": RANDOM_POLICY, "safe_high_return": safe_high}
@@ -258,7 +91,7 @@ def reference_jobs(env_id: str, *, episodes: int = 10, seed: int = 0) -> dict[st
             env_id,
             resolve_policy(spec, env_id),
             episodes,
-            seed=_derive_seed(seed, 99),
+            seed=derive_seed(seed, 99),
             progress=False,
             desc=f"reference {spec}",
         )
@@ -317,7 +150,7 @@ def collect(
             env_id,
             resolve_policy(segment.policy, env_id),
             segment.episodes,
-            seed=_derive_seed(seed, 10, k),
+            seed=derive_seed(seed, 10, k),
             num_envs=num_envs,
             progress=False,
             desc=f"{segment.label} ({segment.policy})",

@@ -2,7 +2,7 @@
 
 DSRL files cannot be downloaded on every machine, so the realistic experiments stand on data rolled out here,
 as the paper made its Safety-Gymnasium datasets (appendix F.2). Each entry of :data:`GENERATED_DATASETS` says
-which committed policies (:mod:`spoil_torchrl.experts.policies`) are rolled out for how many episodes;
+which committed policies (:mod:`spoil_torchrl.zoo.policy_files`) are rolled out for how many episodes;
 :func:`ensure_generated` makes the file on first use (:func:`spoil_torchrl.data.collect.collect`, atomic) and
 then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`.
 
@@ -51,7 +51,7 @@ class GeneratedDataset:
     def fingerprint(self, num_envs: int) -> str:
         """A hash of everything that determines the file's content: the recipe, ``num_envs`` and the bytes of
         every committed policy it rolls out (a policy re-exported under the same name makes the file again)."""
-        from spoil_torchrl.experts.policies import zoo_policy
+        from spoil_torchrl.zoo.policy_files import zoo_policy
 
         policies = sorted({s.policy for s in self.segments if s.policy.startswith("zoo:")})
         digests = [hashlib.sha256(zoo_policy(self.env_id, p[4:]).read_bytes()).hexdigest() for p in policies]

@@ -5,7 +5,7 @@ threads. :class:`RolloutPool` hands independent rollouts -- the segments of a ge
 (:func:`~spoil_torchrl.data.collect.collect`), the seeds' evaluations of a ``seeds=[...]`` run
 (:meth:`~spoil_torchrl.eval.Evaluator.rollout_job`, with a copy of each policy) -- to a worker process per spare
 core, while the caller takes its own share. A rollout draws from its own random stream and computes its
-policy's products in IEEE float32 on one thread (:func:`~spoil_torchrl.data.collect.rollout`), so its arrays
+policy's products in IEEE float32 on one thread (:func:`~spoil_torchrl.envs.rollout.rollout`), so its arrays
 are the same in a worker as in the caller, bit for bit (``tests/data/test_parallel.py``).
 
 Workers are spawned (not forked: the caller's torch threads and open files stay its own), ignore Ctrl-C (the

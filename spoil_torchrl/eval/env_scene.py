@@ -14,7 +14,7 @@ Read from the Safety-Gymnasium 1.0.0 environment instances (never typed in):
   ``|y| = 1.125`` for Circle2; cost 1 beyond them), as Foxglove scene entities. Velocity tasks have no spatial
   boundary: no entities.
 
-:func:`replay_episodes` gives these per step for episodes that :func:`spoil_torchrl.data.collect.rollout`
+:func:`replay_episodes` gives these per step for episodes that :func:`spoil_torchrl.envs.rollout.rollout`
 returned: it replays each episode's stored actions from the same reset seeds (MuJoCo is deterministic) and
 checks that the replay reproduces the stored observations step by step.
 """
@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from spoil_torchrl.envs.rollout import episode_bounds, reset_seed
 from spoil_torchrl.eval import mcap_foxglove as fox
 
 WALL_COLOR = fox.color(0.9, 0.2, 0.2, 0.35)
@@ -162,7 +163,6 @@ def replay_episodes(
     reset's observation identifies the episode that followed it. An episode whose replay does not reproduce
     its stored observations gets ``None`` (with a warning).
     """
-    from spoil_torchrl.data.collect import episode_bounds, reset_seed
     from spoil_torchrl.envs import make_safety_gymnasium
 
     bounds = list(zip(*(b.tolist() for b in episode_bounds(arrays)), strict=True))

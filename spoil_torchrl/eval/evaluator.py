@@ -12,6 +12,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
+from spoil_torchrl.envs.rollout import episode_bounds, rollout
 from spoil_torchrl.eval.env_scene import agent_pose, make_render_env, replay_episodes, task_view
 from spoil_torchrl.eval.mcap_writer import RolloutWriter
 from spoil_torchrl.eval.metrics import episode_metrics
@@ -38,7 +39,6 @@ def pad_episodes(arrays: Mapping[str, np.ndarray]) -> TensorDict:
         >>> pad_episodes(arrays)["mask"].tolist()
         [[True, True], [True, False]]
     """
-    from spoil_torchrl.data.collect import episode_bounds
 
     starts, ends = episode_bounds(arrays)
     if ends.size == 0 or ends[-1] != len(arrays["rewards"]):
@@ -80,9 +80,8 @@ def evaluation_rollout(
     num_envs: int,
     record: Callable[[Any], np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
-    """The deterministic episodes of an evaluation (:func:`spoil_torchrl.data.collect.rollout`), the policy in
+    """The deterministic episodes of an evaluation (:func:`spoil_torchrl.envs.rollout.rollout`), the policy in
     eval mode meanwhile."""
-    from spoil_torchrl.data.collect import rollout
 
     was_training = policy.training
     policy.eval()
@@ -104,7 +103,7 @@ def evaluation_rollout(
 class Evaluator:
     """Runs ``episodes`` deterministic episodes of a policy in ``env_id`` and reports the paper's metrics.
 
-    Each call rolls the policy out (:func:`spoil_torchrl.data.collect.rollout` with the policy's deterministic
+    Each call rolls the policy out (:func:`spoil_torchrl.envs.rollout.rollout` with the policy's deterministic
     action, the same ``seed`` every time and, as every rollout, IEEE float32 products on one thread whatever the
     caller's :func:`torch.set_float32_matmul_precision` and threads, so that evaluations differ only by the
     policy), computes the per-episode
@@ -186,7 +185,6 @@ class Evaluator:
 
     def report(self, arrays: dict[str, np.ndarray], step: int = 0) -> dict:
         """The metrics of an evaluation's rollout (:meth:`rollout_job`), its episodes written to the writer."""
-        from spoil_torchrl.data.collect import episode_bounds
 
         arrays = dict(arrays)
         recorded = arrays.pop("recorded", None)

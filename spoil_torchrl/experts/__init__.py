@@ -1,22 +1,6 @@
-"""Expert training (PPO, PPO-Lagrangian) and the committed policy zoo used to make demonstration data."""
+"""Expert training: PPO and PPO-Lagrangian (:func:`train_ppo`), resumable, with the trajectory buffer of replay
+datasets. The policies it produced for the paper's tasks are committed in :mod:`spoil_torchrl.zoo`."""
 
-from spoil_torchrl.experts.policies import (
-    PolicyFileError,
-    export_checkpoint,
-    load_policy,
-    save_policy,
-    zoo_names,
-    zoo_policy,
-)
 from spoil_torchrl.experts.ppo import PPOConfig, train_ppo
 
-__all__ = [
-    "PPOConfig",
-    "PolicyFileError",
-    "export_checkpoint",
-    "load_policy",
-    "save_policy",
-    "train_ppo",
-    "zoo_names",
-    "zoo_policy",
-]
+__all__ = ["PPOConfig", "train_ppo"]

@@ -3,7 +3,7 @@
 With one environment, :func:`~spoil_torchrl.experts.ppo.collect_batch` steps a TorchRL environment, and
 TorchRL's per-step work costs more than the simulator's own step. :class:`LockstepCollector` steps
 ``num_envs`` plain Safety-Gymnasium environments side by side instead, with one batched policy call per step,
-as the dataset collector does (:func:`spoil_torchrl.data.collect.rollout`). A batch of ``frames_per_batch``
+as the dataset collector does (:func:`spoil_torchrl.envs.rollout.rollout`). A batch of ``frames_per_batch``
 frames is then ``[num_envs, frames_per_batch / num_envs]``. Every environment starts the batch from a reset
 seeded by the run's seed, the batch's index and its own index. Episodes end and reset inside the batch, and an
 episode still running at the batch's end is cut there (not ``done``: GAE bootstraps it from the critic). So the

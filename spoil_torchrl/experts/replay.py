@@ -129,8 +129,9 @@ def write_replay_dataset(
     episodes, and each episode's training batch in ``episode_batches``), the software ``stack`` and
     ``metadata``'s entries.
     """
-    from spoil_torchrl.data.collect import episode_bounds, episode_totals, reference_jobs
+    from spoil_torchrl.data.collect import reference_jobs
     from spoil_torchrl.data.hdf5 import write_dsrl_file
+    from spoil_torchrl.envs.rollout import episode_bounds, episode_totals
     from spoil_torchrl.stack import current_stack
     from spoil_torchrl.tasks import get_env_task
 

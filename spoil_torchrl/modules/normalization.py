@@ -79,7 +79,7 @@ def with_observation_norm(actor: ProbabilisticActor, normalizer: ObservationNorm
     """A policy that standardises its observation with ``normalizer`` and then runs ``actor``.
 
     The result shares ``actor``'s layers (training one trains the other) and puts the normaliser first in
-    its MLP, so its state dict (and a policy file written by :func:`~spoil_torchrl.experts.save_policy`)
+    its MLP, so its state dict (and a policy file written by :func:`~spoil_torchrl.zoo.save_policy`)
     holds the statistics next to the weights.
 
     Examples:

@@ -1,8 +1,8 @@
 """TorchRL loss modules of SpoilDICE, one concept per file."""
 
 from spoil_torchrl.objectives.annotate import annotate
-from spoil_torchrl.objectives.coptidice import (
-    COptiDICELoss,
+from spoil_torchrl.objectives.coptidice import COptiDICELoss
+from spoil_torchrl.objectives.coptidice_equations import (
     coptidice_dual,
     coptidice_log_weight,
     coptidice_weight,

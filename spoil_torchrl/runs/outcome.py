@@ -30,10 +30,10 @@ from pathlib import Path
 
 from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.divergence import TrainingDiverged
-from spoil_torchrl.tasks import UnknownDatasetError
 from spoil_torchrl.runs.checkpoint import CheckpointError
 from spoil_torchrl.runs.directory import RunDirError
 from spoil_torchrl.runs.settings import SettingsError
+from spoil_torchrl.tasks import UnknownDatasetError
 
 #: Errors that are the user's to fix (a setting, a file, a run directory).
 USER_ERRORS = (SettingsError, RunDirError, CheckpointError, DatasetError, UnknownDatasetError)

@@ -21,9 +21,9 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from spoil_torchrl.files import update_digest, write_atomic
-from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.runs.checkpoint import CheckpointError
 from spoil_torchrl.runs.directory import RunDirError, run_status
+from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 
 #: Settings that may change between a run and its resumption (they do not change what is trained).
 RESUMABLE_CHANGES = ("progress",)

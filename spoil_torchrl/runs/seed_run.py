@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
+from spoil_torchrl.algorithms import PolicyTraining
 from spoil_torchrl.data import DualDemoBuffers
 from spoil_torchrl.data.parallel import Job
 from spoil_torchrl.divergence import check_finite
@@ -30,14 +31,13 @@ from spoil_torchrl.eval.dice_diagnostics import (
     support_accuracy,
 )
 from spoil_torchrl.eval.mcap_resume import continue_rollouts
-from spoil_torchrl.experts import save_policy
 from spoil_torchrl.precision import matmul_check
-from spoil_torchrl.algorithms import PolicyTraining
 from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from spoil_torchrl.trainers.offline import DIVERGED_ADVICE
-from spoil_torchrl.runs.resume import csv_row_counts
 from spoil_torchrl.runs.directory import CHECKPOINT_NAME, write_lock
 from spoil_torchrl.runs.results import aggregate, write_json
+from spoil_torchrl.runs.resume import csv_row_counts
+from spoil_torchrl.trainers.offline import DIVERGED_ADVICE
+from spoil_torchrl.zoo import save_policy
 
 log = logging.getLogger(__name__)
 

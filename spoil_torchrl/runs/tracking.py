@@ -47,7 +47,7 @@ __all__ = [
 LOGGER_PACKAGES = {
     "tensorboard": ("tensorboard", "pip install 'spoil_torchrl[tensorboard]'"),
     "wandb": ("wandb", "pip install 'spoil_torchrl[wandb]'"),
-    "mlflow": ("mlflow", "pip install mlflow"),
+    "mlflow": ("mlflow", "pip install 'spoil_torchrl[mlflow]'"),
 }
 #: logger types that write nothing
 NO_LOGGER = (None, "", "none")

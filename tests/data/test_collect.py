@@ -16,14 +16,14 @@ from spoil_torchrl.data import (
     collect,
     load_episodes,
     read_metadata,
-    rollout,
     segment_pools,
 )
 from spoil_torchrl.data import generated as generated_module
 from spoil_torchrl.data.hdf5 import METADATA_ATTR
-from spoil_torchrl.experts import zoo_policy
-from spoil_torchrl.experts.policies import load_policy
+from spoil_torchrl.envs.rollout import rollout
 from spoil_torchrl.stack import current_stack
+from spoil_torchrl.zoo import zoo_policy
+from spoil_torchrl.zoo.policy_files import load_policy
 
 # the package re-exports the function collect(), which hides the module of the same name
 collect_module = importlib.import_module("spoil_torchrl.data.collect")

@@ -58,8 +58,8 @@ class Fails:
 
 
 def _policies():
-    from spoil_torchrl.experts import load_policy, zoo_policy
     from spoil_torchrl.modules import ObservationNormalizer, make_actor, with_observation_norm
+    from spoil_torchrl.zoo import load_policy, zoo_policy
 
     torch.manual_seed(0)
     standardised = with_observation_norm(

@@ -30,7 +30,7 @@ def test_pad_episodes_masks_and_rejects_unfinished():
 
 @pytest.mark.skipif(importlib.util.find_spec("safety_gymnasium") is None, reason="safety-gymnasium missing")
 def test_evaluator_metrics_and_mcap(tmp_path):
-    from spoil_torchrl.experts import load_policy, zoo_policy
+    from spoil_torchrl.zoo import load_policy, zoo_policy
 
     policy, _ = load_policy(zoo_policy("SafetyPointCircle1-v0", "unsafe-high"))
     with RolloutWriter(tmp_path / "r.mcap", cost_threshold=25.0) as writer:

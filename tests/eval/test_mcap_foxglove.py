@@ -220,7 +220,7 @@ def test_layout_file_matches_the_topics():
 
 @pytest.fixture(scope="module")
 def circle_policy():
-    from spoil_torchrl.experts import load_policy, zoo_policy
+    from spoil_torchrl.zoo import load_policy, zoo_policy
 
     return load_policy(zoo_policy("SafetyPointCircle1-v0", "unsafe-high"))[0]
 
@@ -287,7 +287,7 @@ def test_evaluation_file_is_foxglove_ready(tmp_path, circle_policy):
 @needs_safety
 def test_poses_recorded_in_the_rollout_are_the_replays(circle_policy):
     """An evaluation without frames reads the agent's pose during its rollout instead of replaying it."""
-    from spoil_torchrl.data.collect import episode_bounds, rollout
+    from spoil_torchrl.envs.rollout import episode_bounds, rollout
     from spoil_torchrl.eval.env_scene import agent_pose, replay_episodes
 
     arrays = rollout(
@@ -311,7 +311,7 @@ def test_rendered_frames(tmp_path, circle_policy):
     except RuntimeError as err:
         assert "MUJOCO_GL" in str(err)  # the one clear error; nothing more to test without OpenGL
         pytest.skip(f"no off-screen OpenGL here: {err}")
-    from spoil_torchrl.data.collect import rollout
+    from spoil_torchrl.envs.rollout import rollout
 
     arrays = rollout(
         "SafetyPointCircle1-v0", circle_policy, 1, seed=3, num_envs=1, deterministic=True, progress=False

@@ -8,6 +8,8 @@ import pytest
 
 from spoil_torchrl.runs.settings import SettingsError
 from spoil_torchrl.runs.tracking import (
+    LOGGER_PACKAGES,
+    NO_LOGGER,
     check_logger_available,
     flat_hparams,
     make_logger,
@@ -62,7 +64,7 @@ def test_unknown_logger_refused():
     [
         ("tensorboard", r"pip install 'spoil_torchrl\[tensorboard\]'"),
         ("wandb", r"pip install 'spoil_torchrl\[wandb\]'"),
-        ("mlflow", r"pip install mlflow \(or choose logger=csv\)"),
+        ("mlflow", r"pip install 'spoil_torchrl\[mlflow\]' \(or choose logger=csv\)"),
     ],
 )
 def test_missing_logger_package_refused_with_its_install(monkeypatch, kind, install):
@@ -115,6 +117,28 @@ def test_tensorboard_records_hparams(tmp_path):
     assert hparams["dataset.name"] == "point-circle1-mixed"
     assert hparams["train.lr"] == pytest.approx(3e-4) and hparams["seed"] == 4
     assert "resume" not in hparams
+
+
+def test_every_logger_config_names_a_logger_the_run_accepts():
+    # each configs/logger/<name>.yaml is a logger= choice; its type is one check_logger_available knows
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    folder = Path(__file__).resolve().parents[2] / "configs" / "logger"
+    kinds = {path.stem: OmegaConf.load(path).type for path in folder.glob("*.yaml")}
+    assert set(kinds) == {"csv", "none", "tensorboard", "wandb", "mlflow"}
+    for name, kind in kinds.items():
+        assert kind == name or (name == "none" and kind in NO_LOGGER)
+        assert kind in {"csv", *LOGGER_PACKAGES} or kind in NO_LOGGER
+
+
+def test_mlflow_records_params(tmp_path):
+    mlflow = pytest.importorskip("mlflow")
+    logger, _ = make_logger(settings(type="mlflow"), tmp_path)
+    logger.log_scalar("loss", 0.5, step=10)
+    run = mlflow.get_run(logger.experiment.info.run_id)  # TorchRL's experiment is the active MLflow run
+    assert run.data.params["algo.name"] == "spoildice" and run.data.params["seed"] == "4"
 
 
 def test_wandb_offline_records_config_and_labels(tmp_path, monkeypatch):

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from spoil_torchrl.eval.experiments import (
+from spoil_torchrl.runs.experiments import (
     experiment_markdown,
     level_summary,
     load_experiment,
@@ -97,7 +97,7 @@ def test_mixed_cells_are_refused(tmp_path):
 
 def test_statistics_name_the_improvement_over_each_baseline(tmp_path):
     pytest.importorskip("rliable")
-    from spoil_torchrl.eval.experiments import experiment_statistics
+    from spoil_torchrl.runs.experiments import experiment_statistics
 
     _grid(tmp_path)
     text = experiment_statistics(load_experiment([tmp_path]), reps=50)
@@ -109,7 +109,7 @@ def test_statistics_name_the_improvement_over_each_baseline(tmp_path):
 def test_a_sweep_still_running_reports_what_it_has(tmp_path):
     """Task b has no cell at level 0.75 yet: its tables show "-" there and the statistics skip that level."""
     pytest.importorskip("rliable")
-    from spoil_torchrl.eval.experiments import experiment_statistics
+    from spoil_torchrl.runs.experiments import experiment_statistics
 
     for dataset, value in (("a", 0.25), ("a", 0.75), ("b", 0.25)):
         for seed in (0, 1):

@@ -13,7 +13,7 @@ With ``"observation_norm": True`` the actor standardises its raw observations it
 :func:`load_policy` also reads the raw ``ckpt_<frames>.pt`` files that :func:`~spoil_torchrl.experts.train_ppo`
 writes (``{"actor": <state_dict>, "frames": ..., ...}``): the layer sizes are then read off the weights.
 
-The **zoo** is the set of policies committed with the package (``spoil_torchrl/experts/zoo/<env_id>/<name>.pt``):
+The **zoo** is the set of policies committed with the package (``spoil_torchrl/zoo/<env_id>/<name>.pt``):
 the paper's four policy types (``safe-high``, ``safe-medium``, ``unsafe-high``, ``unsafe-medium``) and a few
 intermediate PPO / PPO-Lagrangian checkpoints, from which :mod:`spoil_torchrl.data.generated` makes datasets.
 ``docs/experts.md`` says where each one comes from and how it scores.
@@ -37,7 +37,7 @@ from spoil_torchrl.modules import (
 )
 
 POLICY_FORMAT = 1
-ZOO_DIR = Path(__file__).parent / "zoo"
+ZOO_DIR = Path(__file__).parent  #: spoil_torchrl/zoo/<env_id>/<name>.pt
 
 
 class PolicyFileError(ValueError):

@@ -1,0 +1,276 @@
+"""A run of the main recipe from its settings to its trained-but-not-yet-optimised algorithm: claim the run
+directory (:func:`claim_runs`), load the input of Algorithm 1 for each seed (:func:`open_run`) and pre-train what
+the algorithm needs (:func:`pretrain`). :mod:`spoil_torchrl.runs.training` takes it from there. A user's own
+recipe calls the same functions::
+
+    with claim_runs(cfg, run_dir) as claim:
+        if not claim.finished:
+            runs = [open_run(*seed, claim.start) for seed in claim.seeds]
+            with recorded_failure(runs):
+                for seed_run in runs:
+                    pretrain(seed_run)
+                results = train_one(runs[0])
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from spoil_torchrl.algorithms import ALGORITHMS, BuildContext, EpisodeConstraint
+from spoil_torchrl.data import (
+    DualDemoBuffers,
+    fit_observation_normalizer,
+    segment_pools,
+    standardize_observations,
+)
+from spoil_torchrl.data.prepare import prepare_dataset
+from spoil_torchrl.eval import Evaluator
+from spoil_torchrl.eval.dice_diagnostics import subsample
+from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint
+from spoil_torchrl.runs.directory import (
+    CHECKPOINT_NAME,
+    RunDirError,
+    claim_run_dir,
+    release_run_dir,
+    write_hydra_record,
+)
+from spoil_torchrl.runs.results import experiment_cell, settings_yaml, write_json
+from spoil_torchrl.runs.resume import (
+    check_resumable,
+    finished_already,
+    pretraining_fingerprint,
+    trim_csv_logs,
+)
+from spoil_torchrl.runs.seed_run import SeedRun, common_checkpoints, performant_support
+from spoil_torchrl.runs.settings import SettingsError, check_settings
+from spoil_torchrl.runs.tracking import check_logger_available, make_logger
+from spoil_torchrl.stack import current_stack
+from spoil_torchrl.tasks import get_env_task
+
+
+@dataclass
+class Claim:
+    """The run directories a process holds, and what each seed continues from.
+
+    Attributes:
+        finished: ``resume=auto`` found every seed finished with these settings; nothing was claimed.
+        seeds: per seed, its settings (``seed=<k>``), its run directory and the checkpoint it continues from
+            (``None``: it starts), the arguments of :func:`open_run` before ``start``.
+        vectorised: a ``seeds=[...]`` run (its main stages train at once, ``train_seeds``).
+        start: when the run started (``time.perf_counter``).
+    """
+
+    finished: bool
+    seeds: list[tuple[DictConfig, Path, Path | None]] = field(default_factory=list)
+    vectorised: bool = False
+    start: float = 0.0
+
+
+def seed_settings(cfg: DictConfig, seed: int) -> DictConfig:
+    """The settings of seed ``seed`` of a ``seeds=[...]`` run: the single-seed run's (``seed=<seed>``)."""
+    seed_cfg = cfg.copy()
+    with open_dict(seed_cfg):
+        seed_cfg.seed, seed_cfg.seeds = int(seed), None
+    return seed_cfg
+
+
+@contextlib.contextmanager
+def claim_runs(cfg: DictConfig, run_dir: Path) -> Iterator[Claim]:
+    """Check the settings, then hold ``run_dir`` (and, for ``seeds=[...]``, each ``run_dir/seed<k>``) until the
+    block ends. A start never overwrites a run; ``resume=true`` continues the one there after checking that its
+    settings are the same (a refused resume writes nothing); ``resume=auto`` passes over finished runs.
+
+    Raises:
+        SettingsError: a setting has a value it cannot have, or ``algo.name`` has no builder.
+        RunDirError: another process holds the directory, or it holds a run that cannot be continued.
+    """
+    start = time.perf_counter()
+    check_settings(OmegaConf.to_container(cfg, resolve=True))  # before any data loading or training
+    check_logger_available(cfg.logger.type)  # a missing tensorboard / wandb fails now, not after pre-training
+    if cfg.algo.name not in ALGORITHMS:
+        raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
+    seeds = [int(s) for s in cfg.get("seeds") or []]
+    resume = cfg.get("resume", False)
+    done = [  # resume=auto passes over runs that have finished with these settings (a sweep's finished cells)
+        finished_already(
+            run_dir / f"seed{s}" if seeds else run_dir, settings_yaml(seed_settings(cfg, s)), resume
+        )
+        for s in (seeds or [cfg.seed])
+    ]
+    if all(done):  # said on the console only: the finished run's files stay as they are
+        print(f"{run_dir}: finished already; nothing to do (resume=auto)")
+        yield Claim(finished=True, start=start)
+        return
+
+    def same_settings(resuming: bool) -> None:  # a refused resume writes nothing into the run directory
+        if resuming and not seeds:
+            check_resumable(load_checkpoint(run_dir / CHECKPOINT_NAME), settings_yaml(cfg), run_dir)
+
+    resuming = claim_run_dir(run_dir, resume="auto" if seeds and resume else resume, check=same_settings)
+    if not resuming:
+        write_hydra_record(run_dir, cfg)
+    claimed = []
+    try:
+        if not seeds:
+            checkpoint = run_dir / CHECKPOINT_NAME if resuming else None
+            yield Claim(finished=False, seeds=[(cfg, run_dir, checkpoint)], start=start)
+            return
+        # a seeds=[...] run keeps each seed's run in seed<k>/, each claimed on its own
+        (run_dir / "config.yaml").write_text(settings_yaml(cfg))
+        seeds_resuming = []
+        for seed in seeds:
+            claimed.append(run_dir / f"seed{seed}")
+            seeds_resuming.append(claim_run_dir(claimed[-1], resume=resume))
+        checkpoints = common_checkpoints(
+            claimed, seeds_resuming
+        )  # the last step every seed can continue from
+        yield Claim(
+            finished=False,
+            seeds=[
+                (seed_settings(cfg, seed), seed_dir, checkpoint)
+                for seed, seed_dir, checkpoint in zip(seeds, claimed, checkpoints, strict=True)
+            ],
+            vectorised=True,
+            start=start,
+        )
+    finally:
+        for seed_dir in claimed:
+            release_run_dir(seed_dir)
+        release_run_dir(run_dir)
+
+
+def _probe_checkpoint_folder(run_dir: Path) -> None:
+    """An unwritable checkpoint folder fails now, not at the first evaluation."""
+    probe = run_dir / "checkpoints" / ".writable"
+    try:
+        probe.parent.mkdir(parents=True, exist_ok=True)
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise RunDirError(f"{probe.parent}: cannot write checkpoints there ({err})") from None
+
+
+def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: float) -> SeedRun:
+    """Input of Algorithm 1 for one seed: D_S, D_P, D_U and D_0 in their buffers, the evaluator, the logger, and
+    ``results.json`` (or, resuming from ``checkpoint``, its state and results)."""
+    torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(int(cfg.seed))
+    config_yaml = settings_yaml(cfg)
+    state = None
+    if checkpoint is not None:  # the checkpoint of an evaluation, made with the same settings
+        state = load_checkpoint(checkpoint)
+        check_resumable(state, config_yaml, run_dir)
+    (run_dir / "config.yaml").write_text(config_yaml)
+    task = get_env_task(cfg.task.env_id)
+    train = cfg.train
+    if train.checkpoint:
+        _probe_checkpoint_folder(run_dir)
+
+    # Input: D_S, D_P, D_U (episode ids of one dataset) and the initial states D_0.
+    # (an algorithm that needs another role, e.g. SafeDICE's non-preferred D_N, lists it in algo.extra_roles)
+    data = prepare_dataset(
+        cfg.dataset,
+        env_id=task.env_id,
+        seed=int(cfg.seed),
+        progress=cfg.progress,
+        extra_roles=tuple(cfg.algo.get("extra_roles", ())),
+    )
+    # States standardised once with D_U's statistics: every network reads them, the saved policy carries them.
+    norm = (
+        fit_observation_normalizer(data.episodes, data.roles["unlabeled"])
+        if cfg.normalize_observations
+        else None
+    )
+    episodes = data.episodes if norm is None else standardize_observations(data.episodes, norm)
+    buffers = DualDemoBuffers(episodes, data.roles, batch_size=int(train.batch_size), seed=int(cfg.seed))
+    data_seconds = time.perf_counter() - start
+    evaluator = Evaluator(  # built (and its settings checked) before any training
+        task.env_id,
+        cost_threshold=data.cost_threshold,
+        return_range=data.return_range,
+        episodes=int(train.eval_episodes),
+        seed=10_000 + int(cfg.seed),
+        num_envs=int(cfg.task.eval_num_envs),
+        frames=bool(OmegaConf.select(cfg, "eval.frames", default=False)),
+    )
+    # TorchRL logger, labelled by dataset / algo / seed, with the settings as hyper-parameters
+    logger, tracking = make_logger(
+        OmegaConf.to_container(cfg, resolve=True),
+        run_dir / "logs",
+        tracking=None if state is None else state["results"].get("tracking"),
+    )
+    if state is not None:  # the evaluations so far; the logs lose what was logged after the checkpoint
+        results = state["results"]
+        results.setdefault("resumed_at", []).append(int(state["step"]))
+        trim_csv_logs(run_dir / "logs", state["csv_rows"])
+    else:
+        results = {
+            "algo": cfg.algo.name,
+            "dataset": cfg.dataset.name,
+            "env_id": task.env_id,
+            "seed": int(cfg.seed),
+            "config_hash": hashlib.sha256(config_yaml.encode()).hexdigest()[:12],
+            "stack": current_stack(),  # the versions that decide the numbers (spoil_torchrl.stack)
+            "data": data.summary(),
+            "status": "pre-training",
+            "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)
+            "evaluations": [],
+        }
+        if experiment_cell(cfg) is not None:  # the cell of a paper experiment's sweep (its figure reads it)
+            results["experiment"] = experiment_cell(cfg)
+        if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
+            results["tracking"] = tracking
+    write_json(run_dir / "results.json", results)
+    seed_run = SeedRun(cfg, run_dir, results, buffers, evaluator, logger, norm, data.metadata, state, start)
+    seed_run.random_state = torch.get_rng_state()
+    return seed_run
+
+
+def pretrain(seed_run: SeedRun) -> None:
+    """Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U), from the seed's own
+    random stream. A resumed run does it again, deterministically, and checks that it got the same (no second
+    log rows)."""
+    cfg, results, buffers, state = seed_run.cfg, seed_run.results, seed_run.buffers, seed_run.state
+    task = get_env_task(cfg.task.env_id)
+    torch.set_rng_state(seed_run.random_state)
+    pools = segment_pools(seed_run.metadata) if "segments" in seed_run.metadata else None
+    context = BuildContext(
+        buffers,
+        task.observation_dim,
+        task.action_dim,
+        # the dataset's episode-cost threshold over the task's horizon (read by COptiDICE and FBC's oracle)
+        constraint=EpisodeConstraint(seed_run.evaluator.cost_threshold, task.episode_length),
+        logger=seed_run.logger if state is None else None,
+        progress=cfg.progress,
+    )
+    training = ALGORITHMS[cfg.algo.name](cfg.algo, context)
+    training.observation_norm = seed_run.norm
+    fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
+    if state is not None and fingerprint != state["pretraining"]:
+        raise CheckpointError(
+            f"{seed_run.run_dir}: pre-training did not reproduce the run's (another machine, library version or "
+            "dataset file?), so it cannot continue exactly; start a new run"
+        )
+    if state is None:
+        results.update(
+            diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - seed_run.start
+        )
+    # Diagnostics (never read by training): D_P's support estimate once, and a fixed subsample of the DICE
+    # role on which (nu, lambda) are examined at every evaluation.
+    support = performant_support(buffers, pools)
+    if support is not None:
+        results["performant_support"] = support
+    extras = {"pools": pools, "support": support}
+    if training.dice is not None:
+        extras["probe"] = subsample(buffers[training.dice_role].storage[:], seed=int(cfg.seed))
+        extras["probe_init"] = buffers["init"].storage[:]
+    seed_run.training, seed_run.fingerprint, seed_run.extras = training, fingerprint, extras
+    seed_run.random_state = torch.get_rng_state()  # where the main stage starts drawing

@@ -1,0 +1,56 @@
+"""A recipe of one's own: the main recipe's lifecycle called in-process on settings composed with Hydra's
+compose API, as docs/usage.md shows it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+from spoil_torchrl.runs.directory import LOCK_NAME
+from spoil_torchrl.runs.lifecycle import claim_runs, open_run, pretrain
+from spoil_torchrl.runs.seed_run import recorded_failure
+from spoil_torchrl.runs.training import train_one
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def _settings(dataset, *overrides):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(
+            "spoildice_dsrl",
+            overrides=[
+                "preset=smoke",
+                f"dataset.source=file:{dataset}",
+                "dataset.n_safe=2",
+                "dataset.n_performant=2",
+                "progress=false",
+                *overrides,
+            ],
+        )
+
+
+def test_a_recipe_of_ones_own_trains_and_finishes_a_run(tmp_path, tiny_pc1_dataset):
+    cfg = _settings(tiny_pc1_dataset, "algo=fbc", "train.checkpoint=false")
+    with claim_runs(cfg, tmp_path) as claim:
+        assert not claim.finished and not claim.vectorised
+        assert (tmp_path / LOCK_NAME).is_file()  # held while the block runs
+        runs = [open_run(*seed, claim.start) for seed in claim.seeds]
+        with recorded_failure(runs):
+            for seed_run in runs:
+                pretrain(seed_run)
+            assert runs[0].training.diagnostics["support_share_performant"] > 0  # FBC's cut, pre-trained
+            results = train_one(runs[0])
+    assert not (tmp_path / LOCK_NAME).exists()  # released at the end of the block
+    on_disk = json.loads((tmp_path / "results.json").read_text())
+    assert results["status"] == on_disk["status"] == "finished" and on_disk["algo"] == "fbc"
+    assert [e["step"] for e in on_disk["evaluations"]] == [100, 200]
+    assert (tmp_path / ".hydra" / "config.yaml").is_file()  # the settings, outside a Hydra job
+    assert not (tmp_path / ".hydra" / "hydra.yaml").exists()
+
+    # the same command again passes over the finished run (resume=auto) and claims nothing
+    again = _settings(tiny_pc1_dataset, "algo=fbc", "train.checkpoint=false", "resume=auto")
+    with claim_runs(again, tmp_path) as claim:
+        assert claim.finished and claim.seeds == []
+        assert not (tmp_path / LOCK_NAME).exists()
