@@ -237,6 +237,12 @@ def main() -> None:
     parser.add_argument(
         "--experiment", help="with --figure: the experiment to report, when several are found"
     )
+    parser.add_argument(
+        "--mixed-files",
+        action="store_true",
+        help="with --figure: the cells of one dataset may come from different files of it (a generated "
+        "dataset made again on another CPU); the tables say how many runs each file has",
+    )
     args = parser.parse_args()
     for flag, path in (("--out", args.out), ("--plot", args.plot), ("--curves", args.curves)):
         if path is not None and path.is_dir():
@@ -246,8 +252,8 @@ def main() -> None:
             parser.error(f"{flag} {path}: give a file name ending in .png, .pdf or .svg")
     if args.figure:
         return figure_report(parser, args)
-    if args.experiment:
-        parser.error("--experiment needs --figure")
+    if args.experiment or args.mixed_files:
+        parser.error(f"{'--experiment' if args.experiment else '--mixed-files'} needs --figure")
     skipped: list[tuple[Path, str]] = []
     try:
         runs = load_runs(args.folders, latest=args.latest, skipped=skipped)
@@ -295,7 +301,9 @@ def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
         parser.error("--curves and --latest are not available with --figure")
     skipped: list[tuple[Path, str]] = []
     try:
-        experiment = load_experiment(args.folders, name=args.experiment, skipped=skipped)
+        experiment = load_experiment(
+            args.folders, name=args.experiment, skipped=skipped, mixed_files=args.mixed_files
+        )
     except (FileNotFoundError, ValueError) as error:
         experiment = error
     for path, reason in skipped:

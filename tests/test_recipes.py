@@ -278,7 +278,7 @@ def test_collect_demos_recipe_reuses_a_cached_dataset(tmp_path, monkeypatch):
 
 
 def test_score_checkpoints_scores_zoo_policies(tmp_path):
-    zoo = ROOT / "spoil_torchrl" / "experts" / "zoo" / "SafetyPointCircle1-v0"
+    zoo = ROOT / "spoil_torchrl" / "zoo" / "SafetyPointCircle1-v0"
     cmd = [
         sys.executable,
         str(ROOT / "recipes" / "score_checkpoints.py"),

@@ -92,20 +92,26 @@ def _datasets_and_algos(keys, order: Sequence[str]) -> tuple[list[str], list[str
     return datasets, algos
 
 
-def _shared_legend(fig, algos, names: Mapping[str, str], order, extra: Sequence = ()) -> None:
+def _shared_legend(fig, algos, names: Mapping[str, str], order, extra: Sequence = ()) -> float:
+    """One legend below the panels, in as many columns as the figure's width holds (at most 6); returns the
+    share of the figure's height it takes, for ``tight_layout(rect=...)``."""
     from matplotlib.lines import Line2D
 
     handles = [
         Line2D([], [], linestyle="none", markersize=8, **algorithm_style(a, order), label=names.get(a, a))
         for a in algos
     ]
+    entries = len(handles) + len(extra)
+    ncol = max(1, min(entries, 6, int(fig.get_figwidth() // 1.35)))
     fig.legend(
         handles=[*handles, *extra],
         loc="lower center",
-        ncol=min(len(handles) + len(extra), 6),
+        ncol=ncol,
         frameon=False,
         bbox_to_anchor=(0.5, 0.0),
     )
+    rows = -(-entries // ncol)
+    return (0.1 + 0.28 * rows) / fig.get_figheight()  # a row of legend is about 0.28 inch
 
 
 def _nan0(value: float) -> float:
@@ -167,8 +173,8 @@ def plot_tradeoff(
     for j in range(len(datasets), len(axes) * cols):
         axes[j // cols][j % cols].axis("off")
     safe = Patch(color="tab:green", alpha=0.25, label="safe (cost <= 1)")
-    _shared_legend(fig, algos, names, order, extra=[safe])
-    fig.tight_layout(rect=(0, 0.07 if len(axes) > 1 else 0.12, 1, 1))
+    below = _shared_legend(fig, algos, names, order, extra=[safe])
+    fig.tight_layout(rect=(0, below, 1, 1))
     _save(plt, fig, path)
 
 
@@ -336,8 +342,8 @@ def plot_levels(
             ax.grid(alpha=0.3)
         bottom.set_xlabel(level_name)
     safe = Patch(color="tab:green", alpha=0.25, label="safe (cost <= 1)")
-    _shared_legend(fig, algos, names, order, extra=[safe])
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    below = _shared_legend(fig, algos, names, order, extra=[safe])
+    fig.tight_layout(rect=(0, below, 1, 1))
     _save(plt, fig, path)
 
 

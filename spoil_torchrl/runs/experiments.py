@@ -53,6 +53,7 @@ class Experiment:
     level: str | None
     cells: Cells = field(default_factory=dict)
     unfinished: list[tuple[str, str]] = field(default_factory=list)
+    files: dict[str, dict[str, int]] = field(default_factory=dict)  # dataset -> file fingerprint -> cells
 
     @property
     def datasets(self) -> list[str]:
@@ -104,11 +105,18 @@ def finished_results(folders: Sequence[str | Path], skipped: list) -> Iterator[t
 
 
 def load_experiment(
-    folders: Sequence[str | Path], *, name: str | None = None, skipped: list | None = None
+    folders: Sequence[str | Path],
+    *,
+    name: str | None = None,
+    skipped: list | None = None,
+    mixed_files: bool = False,
 ) -> Experiment:
     """The finished cells of experiment ``name`` (the only one found when ``None``) under ``folders``.
 
     Runs that did not finish are appended to ``skipped`` as ``(path, reason)``, as are runs of no experiment.
+    ``mixed_files``: cells of one dataset may come from different files of it (``Experiment.files`` counts
+    them, and :func:`experiment_markdown` says so): a generated dataset made again on another CPU is another
+    file, its episodes rounded differently, though made by the same policies from the same seeds.
 
     Raises:
         FileNotFoundError: a folder does not exist.
@@ -134,14 +142,14 @@ def load_experiment(
         name = next(iter(found))
     if name not in found:
         raise ValueError(f"no finished cell of experiment {name!r} under {where}")
-    experiment = _cells(name, found[name])
+    experiment = _cells(name, found[name], mixed_files=mixed_files)
     experiment.unfinished = [
         (str(p.parent), reason) for p, reason in skipped if not reason.startswith("not a cell")
     ]
     return experiment
 
 
-def _cells(name: str, runs: list[tuple[Path, dict]]) -> Experiment:
+def _cells(name: str, runs: list[tuple[Path, dict]], *, mixed_files: bool = False) -> Experiment:
     levels = {r["experiment"]["level"] for _, r in runs}
     if len(levels) > 1:
         raise ValueError(f"the cells of {name} vary different settings: {sorted(map(str, levels))}")
@@ -158,10 +166,14 @@ def _cells(name: str, runs: list[tuple[Path, dict]]) -> Experiment:
         )  # the file's episodes, whatever the roles
         if fingerprint is not None:
             first = files.setdefault(results["dataset"], (fingerprint, path))
-            if first[0] != fingerprint:
+            counts = experiment.files.setdefault(results["dataset"], {})
+            counts[fingerprint] = counts.get(fingerprint, 0) + 1
+            if first[0] != fingerprint and not mixed_files:
                 raise ValueError(
                     f"the cells of {name} filed as {results['dataset']} were trained on different data: "
-                    f"{first[1].parent} and {path.parent}; give each file its own dataset.name"
+                    f"{first[1].parent} and {path.parent}; give each file its own dataset.name (or, for "
+                    "one dataset made again elsewhere, e.g. on another CPU, let its files share the tables: "
+                    "--mixed-files)"
                 )
         key = (results["dataset"], results["experiment"]["value"], results["algo"])
         if (*key, results["seed"]) in seen:
@@ -275,6 +287,13 @@ def experiment_markdown(experiment: Experiment) -> str:
         lines += [f"Not finished, so not in the tables ({len(experiment.unfinished)}):", ""]
         lines += [f"- `{where}`: {reason}" for where, reason in experiment.unfinished]
         lines.append("")
+    for dataset, counts in sorted(experiment.files.items()):
+        if len(counts) > 1:  # said wherever the numbers are read: they mix files of one dataset
+            parts = ", ".join(f"`{fingerprint}`: {n} runs" for fingerprint, n in sorted(counts.items()))
+            lines += [
+                f"{dataset}: the runs were trained on {len(counts)} files of this dataset ({parts}).",
+                "",
+            ]
     seeds = sorted({len(group) for group in experiment.cells.values()})
     lines.append(
         f"Seeds per cell: {', '.join(map(str, seeds))}. Each seed contributes the mean of its last evaluations; "

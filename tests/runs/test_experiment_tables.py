@@ -127,5 +127,15 @@ def test_cells_of_one_dataset_from_two_stacks_or_two_files_are_refused(tmp_path)
         load_experiment([tmp_path / "s"])
     _cell(tmp_path / "f", "a", 0.25, "bc", 0, 0.5, 0.5, data={"fingerprint": "x"})
     _cell(tmp_path / "f", "a", 0.75, "bc", 0, 0.5, 0.5, data={"fingerprint": "y"})
-    with pytest.raises(ValueError, match="trained on different data"):
+    with pytest.raises(ValueError, match="trained on different data.*--mixed-files"):
         load_experiment([tmp_path / "f"])
+    # let in on request, counted, and said beside the tables
+    _cell(tmp_path / "f", "a", 0.75, "bc", 1, 0.5, 0.5, data={"fingerprint": "y"})
+    experiment = load_experiment([tmp_path / "f"], mixed_files=True)
+    assert experiment.files == {"a": {"x": 1, "y": 2}}
+    assert (
+        "a: the runs were trained on 2 files of this dataset (`x`: 1 runs, `y`: 2 runs)."
+        in experiment_markdown(experiment)
+    )
+    with pytest.raises(ValueError, match="made on 2 software stacks"):
+        load_experiment([tmp_path / "s"], mixed_files=True)
