@@ -68,10 +68,8 @@ class DSRLDataset:
 DSRL_TABLE = "dsrl_datasets.csv"
 
 
-def _cell(text: str) -> int | float | str | None:
-    """A table cell as the value it writes: empty -> ``None``, an integer -> ``int``, a number -> ``float``."""
-    if text == "":
-        return None
+def _cell(text: str) -> int | float | str:
+    """A table cell as the value it writes: an integer -> ``int``, another number -> ``float``, else the text."""
     for kind in (int, float):
         try:
             return kind(text)
@@ -80,45 +78,47 @@ def _cell(text: str) -> int | float | str | None:
     return text
 
 
-def read_dsrl_table(text: str) -> list[DSRLDataset]:
-    r"""The datasets of a table in the layout of :data:`DSRL_TABLE` (CSV, header row of field names).
+def read_table(text: str, kind: type) -> list:
+    r"""The rows of a table (CSV with a header row naming fields of the dataclass ``kind``) as ``kind``s; an empty
+    cell takes the field's default.
 
     Examples:
-        >>> rows = read_dsrl_table(
+        >>> rows = read_table(
         ...     "dataset_id,file_name,episode_length,max_return,min_return,max_cost\n"
-        ...     "OfflineX-v0,SafetyX-v0-10-5.hdf5,100,10.5,0.0,10.0\n")
+        ...     "OfflineX-v0,SafetyX-v0-10-5.hdf5,100,10.5,0.0,10.0\n", DSRLDataset)
         >>> rows[0].max_return, rows[0].min_return, rows[0].n_trajectories, rows[0].cost_threshold
         (10.5, 0.0, 5, None)
-        >>> read_dsrl_table("dataset_id,file_name,length\n")
+        >>> read_table("dataset_id,file_name,length\n", DSRLDataset)
         Traceback (most recent call last):
         ...
-        ValueError: DSRL table: unknown columns ['length']; the columns are DSRLDataset's fields
+        ValueError: DSRLDataset table: unknown columns ['length']; the columns are DSRLDataset's fields
     """
+    name = kind.__name__
     reader = csv.DictReader(io.StringIO(text))
-    known = {f.name for f in fields(DSRLDataset)}
-    unknown = [name for name in reader.fieldnames or [] if name not in known]
+    known = {f.name for f in fields(kind)}
+    unknown = [column for column in reader.fieldnames or [] if column not in known]
     if unknown:
-        raise ValueError(f"DSRL table: unknown columns {unknown}; the columns are DSRLDataset's fields")
+        raise ValueError(f"{name} table: unknown columns {unknown}; the columns are {name}'s fields")
     rows = []
     for line, row in enumerate(reader, start=2):
-        values = {key: _cell(value) for key, value in row.items()}
-        values["note"] = values.get("note") or ""
-        values["suite"] = values.get("suite") or ""
+        values = {key: _cell(value) for key, value in row.items() if value != ""}
         try:
-            rows.append(DSRLDataset(**values))
+            rows.append(kind(**values))
         except TypeError as err:
-            raise ValueError(f"DSRL table, line {line}: {err}") from None
-    ids = [d.dataset_id for d in rows]
-    if len(set(ids)) != len(ids):
-        raise ValueError(
-            f"DSRL table: dataset ids listed twice: {sorted({i for i in ids if ids.count(i) > 1})}"
-        )
+            raise ValueError(f"{name} table, line {line}: {err}") from None
     return rows
 
 
-_DATASETS = read_dsrl_table(resources.files("spoil_torchrl").joinpath(DSRL_TABLE).read_text())
+def _packaged_table(file_name: str, kind: type, key: str) -> dict:
+    """A table shipped with the package, by its ``key`` field (an id listed twice is an error)."""
+    rows = read_table(resources.files("spoil_torchrl").joinpath(file_name).read_text(), kind)
+    ids = [getattr(row, key) for row in rows]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{file_name}: ids listed twice: {sorted({i for i in ids if ids.count(i) > 1})}")
+    return dict(zip(ids, rows, strict=True))
 
-DSRL_DATASETS: dict[str, DSRLDataset] = {d.dataset_id: d for d in _DATASETS}
+
+DSRL_DATASETS: dict[str, DSRLDataset] = _packaged_table(DSRL_TABLE, DSRLDataset, "dataset_id")
 
 
 class UnknownDatasetError(KeyError):
@@ -182,70 +182,10 @@ class EnvTask:
     action_bound: float = 1.0
 
 
-# Sizes and cost rules: measured with safety-gymnasium 1.0.0; cost limit: Table G.
-ENV_TASKS: dict[str, EnvTask] = {
-    t.env_id: t
-    for t in [
-        EnvTask(
-            env_id="SafetyPointCircle1-v0",
-            episode_length=500,
-            cost_limit=25.0,
-            observation_dim=28,
-            action_dim=2,
-            cost_rule="cost 1 when |x| > 1.125",
-            dsrl_id="OfflinePointCircle1Gymnasium-v0",
-        ),
-        EnvTask(
-            env_id="SafetyPointCircle2-v0",
-            episode_length=500,
-            cost_limit=25.0,
-            observation_dim=28,
-            action_dim=2,
-            cost_rule="cost 1 when |x| > 1.125 or |y| > 1.125",
-            dsrl_id="OfflinePointCircle2Gymnasium-v0",
-        ),
-        EnvTask(
-            env_id="SafetyHopperVelocity-v1",
-            episode_length=1000,
-            cost_limit=25.0,
-            observation_dim=11,
-            action_dim=3,
-            cost_rule="cost 1 when x-velocity > 0.7402",
-            velocity_threshold=0.7402,
-            dsrl_id="OfflineHopperVelocityGymnasium-v1",
-        ),
-        EnvTask(
-            env_id="SafetyHalfCheetahVelocity-v1",
-            episode_length=1000,
-            cost_limit=25.0,
-            observation_dim=17,
-            action_dim=6,
-            cost_rule="cost 1 when x-velocity > 3.2096",
-            velocity_threshold=3.2096,
-            dsrl_id="OfflineHalfCheetahVelocityGymnasium-v1",
-        ),
-        EnvTask(
-            env_id="SafetyWalker2dVelocity-v1",
-            episode_length=1000,
-            cost_limit=25.0,
-            observation_dim=17,
-            action_dim=6,
-            cost_rule="cost 1 when x-velocity > 2.3415",
-            velocity_threshold=2.3415,
-            dsrl_id="OfflineWalker2dVelocityGymnasium-v1",
-        ),
-        EnvTask(
-            env_id="SafetyAntVelocity-v1",
-            episode_length=1000,
-            cost_limit=25.0,
-            observation_dim=27,
-            action_dim=8,
-            cost_rule="cost 1 when planar speed > 2.6222",
-            velocity_threshold=2.6222,
-            dsrl_id="OfflineAntVelocityGymnasium-v1",
-        ),
-    ]
-}
+#: The simulated tasks (a table shipped with the package, columns named by :class:`EnvTask`'s fields). Sizes
+#: and cost rules: measured with safety-gymnasium 1.0.0; cost limit: the paper's Table G.
+ENV_TABLE = "env_tasks.csv"
+ENV_TASKS: dict[str, EnvTask] = _packaged_table(ENV_TABLE, EnvTask, "env_id")
 
 
 def get_env_task(env_id: str) -> EnvTask:

@@ -62,6 +62,7 @@ def test_the_wheel_carries_recipes_configs_and_experts(installed):
         "spoil_torchrl/configs/hydra/launcher/slurm.yaml",
         "spoil_torchrl/zoo/SafetyPointCircle1-v0/safe-high.pt",
         "spoil_torchrl/dsrl_datasets.csv",
+        "spoil_torchrl/env_tasks.csv",
     ):
         assert needed in names, needed
     configs = {n for n in names if n.startswith("spoil_torchrl/configs/") and n.endswith(".yaml")}

@@ -43,19 +43,13 @@ class BuildContext:
         progress: whether pre-training shows a progress bar.
 
     Examples:
-        >>> import numpy as np
+        >>> import torch
+        >>> from tensordict import TensorDict
         >>> from spoil_torchrl.algorithms import ALGORITHMS, BuildContext
         >>> from spoil_torchrl.data import DualDemoBuffers
-        >>> from spoil_torchrl.data.episodes import episodes_from_arrays
-        >>> n = 6
-        >>> episodes = episodes_from_arrays({
-        ...     "observations": np.random.randn(n, 3).astype(np.float32),
-        ...     "next_observations": np.random.randn(n, 3).astype(np.float32),
-        ...     "actions": np.zeros((n, 2), np.float32), "rewards": np.ones(n, np.float32),
-        ...     "costs": np.zeros(n, np.float32), "terminals": np.zeros(n, np.float32),
-        ...     "timeouts": np.array([0, 1, 0, 1, 0, 1], np.float32)})
-        >>> buffers = DualDemoBuffers(episodes, {"safe": [0], "performant": [1], "unlabeled": [0, 1, 2]},
-        ...                           batch_size=4)
+        >>> episodes = TensorDict({"observation": torch.randn(4, 3), "episode": torch.tensor([0, 0, 1, 1]),
+        ...                        "is_init": torch.tensor([[True], [False], [True], [False]])}, [4])
+        >>> buffers = DualDemoBuffers(episodes, {"performant": [1], "unlabeled": [0, 1]}, batch_size=2)
         >>> context = BuildContext(buffers, observation_dim=3, action_dim=2, progress=False)
         >>> training = ALGORITHMS["bc"]({"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}, context)
         >>> sorted(training.stepper.losses)
