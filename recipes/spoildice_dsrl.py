@@ -60,9 +60,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
         if claim.finished:
             return []
         # 1. Input: D_S, D_P, D_U, D_0 in their buffers; the evaluator, the logger and results.json
-        runs = [
-            open_run(*seed, claim.start) for seed in claim.seeds
-        ]  # seed: its settings, folder, checkpoint
+        # (claim.seeds: each seed's settings, run directory and the checkpoint it continues from)
+        runs = [open_run(*seed, claim.start) for seed in claim.seeds]
         with recorded_failure(runs), matmul_precision(cfg.train.get("matmul_precision", "highest")):
             note_precision(runs)  # training's float32 products as configured; every rollout's are IEEE
             # 2. Pre-train C_P and C_S, fit the support cut, annotate D_U (each seed from its own random stream)
