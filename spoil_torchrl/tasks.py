@@ -80,7 +80,7 @@ def _cell(text: str) -> int | float | str:
 
 def read_table(text: str, kind: type) -> list:
     r"""The rows of a table (CSV with a header row naming fields of the dataclass ``kind``) as ``kind``s; an empty
-    cell takes the field's default.
+    cell takes the field's default, and a cell of a ``str`` field stays text (never read as a number).
 
     Examples:
         >>> rows = read_table(
@@ -99,9 +99,10 @@ def read_table(text: str, kind: type) -> list:
     unknown = [column for column in reader.fieldnames or [] if column not in known]
     if unknown:
         raise ValueError(f"{name} table: unknown columns {unknown}; the columns are {name}'s fields")
+    text = {f.name for f in fields(kind) if str(f.type).startswith("str")}
     rows = []
     for line, row in enumerate(reader, start=2):
-        values = {key: _cell(value) for key, value in row.items() if value != ""}
+        values = {key: value if key in text else _cell(value) for key, value in row.items() if value != ""}
         try:
             rows.append(kind(**values))
         except TypeError as err:
