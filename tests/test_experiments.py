@@ -12,6 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.cli import run_command
+
+pytestmark = pytest.mark.runs
+
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
 
@@ -94,7 +98,7 @@ def test_an_experiment_sweep_names_skips_resumes_and_draws_its_cells(tmp_path, t
     }
 
     # the same command again: the finished cells are passed over untouched, the killed one resumed, the last run
-    again = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    again = run_command(command[1:])  # in this process: the sweep's jobs one after the other
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("finished already; nothing to do") == 2
     after = _cells(sweep_dir)
@@ -110,24 +114,20 @@ def test_an_experiment_sweep_names_skips_resumes_and_draws_its_cells(tmp_path, t
             "value": float(d.split("/")[1][11:]),
         }
     # a third start has nothing left to do
-    third = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    third = run_command(command[1:])
     assert third.returncode == 0 and third.stdout.count("finished already; nothing to do") == 4
 
     # the figure and its tables from the run directories alone
-    report = subprocess.run(
+    report = run_command(
         [
-            sys.executable,
-            str(ROOT / "recipes" / "report.py"),
+            "recipes/report.py",
             "--figure",
-            str(sweep_dir),
+            sweep_dir,
             "--out",
-            str(tmp_path / "fig4c.md"),
+            tmp_path / "fig4c.md",
             "--plot",
-            str(tmp_path / "fig4c.png"),
-        ],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
+            tmp_path / "fig4c.png",
+        ]
     )
     assert report.returncode == 0, report.stderr[-3000:]
     text = (tmp_path / "fig4c.md").read_text()
@@ -141,9 +141,9 @@ def test_a_finished_cell_with_other_settings_is_refused(tmp_path, tiny_pc1_datas
     sweep_dir = tmp_path / "fig4c"
     command = [c for c in _command(tiny_pc1_dataset, sweep_dir) if not c.startswith(("train.steps", "algo="))]
     command[command.index("dataset.performance=0.0,1.0")] = "dataset.performance=1.0"
-    first = subprocess.run([*command, "algo=bc"], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    first = run_command([*command[1:], "algo=bc"])
     assert first.returncode == 0, first.stderr[-3000:]
-    changed = subprocess.run([*command, "algo=bc", "train.lr=0.01"], capture_output=True, text=True, cwd=ROOT)
+    changed = run_command([*command[1:], "algo=bc", "train.lr=0.01"])
     assert (
         changed.returncode == 2
         and "has finished, with other settings (algo.actor_lr, train.lr)" in changed.stderr

@@ -5,7 +5,6 @@ from __future__ import annotations
 import functools
 import importlib.util
 import json
-import os
 from pathlib import Path
 
 import pytest
@@ -245,70 +244,6 @@ def test_ppo_config_refuses_impossible_sizes():
         PPOConfig(record_episodes=-1)
 
 
-# --- committed policies ------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize(
-    "env_id", ["SafetyPointCircle1-v0", "SafetyPointCircle2-v0", "SafetyHalfCheetahVelocity-v1"]
-)
-def test_zoo_has_the_four_policy_types(env_id):
-    from spoil_torchrl.zoo import load_policy, zoo_names, zoo_policy
-
-    names = zoo_names(env_id)
-    assert {"safe-high", "safe-medium", "unsafe-high", "unsafe-medium"} <= set(names)
-    for name in names:
-        raw = torch.load(zoo_policy(env_id, name), weights_only=True)
-        assert raw["env_id"] == env_id and raw["hidden_cells"] == [64, 64]
-        _, meta = load_policy(zoo_policy(env_id, name), env_id=env_id)
-        expected = "PPO-Lagrangian" if name.startswith(("safe", "ppolag")) else "PPO"
-        assert meta["info"]["algorithm"] == expected, name
-
-
-def test_zoo_policies_load_with_weights_only_and_check_the_task():
-    from spoil_torchrl.zoo import PolicyFileError, load_policy, zoo_policy
-
-    actor, meta = load_policy(
-        zoo_policy("SafetyPointCircle1-v0", "safe-high"), env_id="SafetyPointCircle1-v0"
-    )
-    assert meta["info"]["algorithm"] == "PPO-Lagrangian" and not actor.training
-    with pytest.raises(PolicyFileError, match="not SafetyHalfCheetahVelocity-v1"):
-        load_policy(zoo_policy("SafetyPointCircle1-v0", "safe-high"), env_id="SafetyHalfCheetahVelocity-v1")
-    with pytest.raises(PolicyFileError, match="no committed policy"):
-        zoo_policy("SafetyPointCircle1-v0", "best-ever")
-
-
-def test_load_policy_reads_raw_training_checkpoints_and_rejects_junk(tmp_path):
-    from spoil_torchrl.modules import make_actor
-    from spoil_torchrl.zoo import PolicyFileError, export_checkpoint, load_policy
-    from spoil_torchrl.zoo import policy_files as policies_module
-
-    actor = make_actor(17, 6, hidden_cells=(16, 8))
-    torch.save({"actor": actor.state_dict(), "frames": 10, "episode_return": 1.5}, tmp_path / "ckpt.pt")
-    loaded, meta = load_policy(tmp_path / "ckpt.pt", env_id="SafetyHalfCheetahVelocity-v1")
-    assert meta["hidden_cells"] == [16, 8] and meta["env_id"] is None and meta["info"]["frames"] == 10
-    for a, b in zip(actor.parameters(), loaded.parameters(), strict=True):
-        assert torch.equal(a, b)
-    with pytest.raises(PolicyFileError, match="sizes 17/6"):
-        load_policy(tmp_path / "ckpt.pt", env_id="SafetyPointCircle1-v0")
-    (tmp_path / "junk.pt").write_text("not a checkpoint")
-    with pytest.raises(PolicyFileError, match="not a policy checkpoint"):
-        load_policy(tmp_path / "junk.pt")
-    with pytest.raises(PolicyFileError, match="no such policy file"):
-        load_policy(tmp_path / "missing.pt")
-    policies_module_zoo = policies_module.ZOO_DIR
-    try:
-        policies_module.ZOO_DIR = tmp_path / "zoo"
-        path = export_checkpoint(tmp_path / "ckpt.pt", "SafetyHalfCheetahVelocity-v1", "mine", info={"x": 1})
-        _, meta = load_policy(path, env_id="SafetyHalfCheetahVelocity-v1")
-        assert meta["env_id"] == "SafetyHalfCheetahVelocity-v1"
-        assert meta["info"]["x"] == 1 and meta["info"]["exported_from"] == "ckpt.pt"
-    finally:
-        policies_module.ZOO_DIR = policies_module_zoo
-
-
-# --- the recipe, killed for real ---------------------------------------------------------------------------
-
-
 @pytest.mark.slow
 @needs_safety_gymnasium
 def test_expert_recipe_killed_with_sigkill_resumes_exactly(tmp_path):
@@ -316,7 +251,6 @@ def test_expert_recipe_killed_with_sigkill_resumes_exactly(tmp_path):
     import subprocess
     import sys
     import time
-    from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
     args = [
@@ -387,89 +321,6 @@ def test_running_observation_statistics_equal_the_batch_statistics():
         learner.observe(part.float())
     assert torch.allclose(learner.obs_mean, x.float().double().mean(0), atol=1e-6)
     assert torch.allclose(learner.norm.scale, x.float().std(0, unbiased=False) + 1e-3, rtol=1e-4)
-
-
-def test_an_incomplete_replay_buffer_is_refused(tmp_path):
-    from spoil_torchrl.experts.replay import read_replay
-
-    with pytest.raises(FileNotFoundError, match="no recorded batch"):
-        read_replay(tmp_path)
-    empty = {k: torch.zeros(0) for k in ("observations", "actions", "next_observations", "rewards", "costs")}
-    empty |= {"terminals": torch.zeros(0, dtype=torch.bool), "timeouts": torch.zeros(0, dtype=torch.bool)}
-    for index in (0, 1, 3):
-        torch.save({**empty, "batch": index}, tmp_path / f"batch_{index:06d}.pt")
-    with pytest.raises(ValueError, match="1 of 4 batches are missing \\(first 2\\)"):
-        read_replay(tmp_path)
-
-
-@needs_safety_gymnasium
-def test_a_recorded_training_becomes_a_replay_dataset_that_trains(tmp_path):
-    """The trajectory buffer of a (tiny) expert training -> ``collect_demos.py replay=...`` (its Table H) ->
-    the main recipe with ``dataset.scheme=replay`` on it."""
-    import subprocess
-    import sys
-
-    from spoil_torchrl.data import episode_stats, load_episodes, read_metadata, replay_subsets
-
-    root = Path(__file__).resolve().parents[1]
-    run = tmp_path / "expert"
-    _train(
-        run, _tiny_config(record_episodes=2, frames_per_batch=1000, total_frames=3000)
-    )  # 2 episodes per batch
-    env = {**os.environ, "SPOIL_TORCHRL_DATA_DIR": str(tmp_path / "data")}
-    made = subprocess.run(
-        [
-            sys.executable,
-            str(root / "recipes" / "collect_demos.py"),
-            "name=tiny-replay",
-            f"replay={run}",
-            "env_id=SafetyPointCircle1-v0",
-            f"hydra.run.dir={tmp_path / 'collect'}",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=root,
-        env=env,
-        timeout=300,
-    )
-    assert made.returncode == 0, made.stderr[-3000:]
-    path = tmp_path / "data" / "tiny-replay.hdf5"
-    meta = read_metadata(path)
-    assert meta["replay"]["batches"] == 3 and meta["replay"]["episodes"] == 6
-    assert meta["replay"]["episode_batches"] == [0, 0, 1, 1, 2, 2]
-    assert meta["env_id"] == "SafetyPointCircle1-v0" and meta["cost_threshold"] == 25.0
-    assert meta["safe_high_return"] > 30  # the committed safe-high policy's return: the safe-optimal return
-    episodes = load_episodes(f"file:{path}")
-    stats = episode_stats(episodes)
-    subsets = replay_subsets(episodes, 25.0, meta["safe_high_return"])
-    assert "| replay |" in made.stdout and f"| {len(stats['cost'])} |" in made.stdout  # Table H, all 6
-    assert subsets["safe"].numel() > 0 and "| safe-replay | 1.00 |" in made.stdout
-    # the main recipe trains on it (R_max -500: every trajectory counts as performant at this size), D_U all
-    trained = subprocess.run(
-        [
-            sys.executable,
-            str(root / "recipes" / "spoildice_dsrl.py"),
-            "preset=smoke",
-            "algo=bc",
-            "logger=none",
-            "progress=false",
-            f"dataset.source=file:{path}",
-            "dataset.scheme=replay",
-            "dataset.n_safe=1",
-            "dataset.n_performant=1",
-            "dataset.n_unlabeled=null",
-            "dataset.return_range=[-1000,-500]",
-            f"hydra.run.dir={tmp_path / 'run'}",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=root,
-        env=env,
-        timeout=300,
-    )
-    assert trained.returncode == 0, trained.stderr[-3000:]
-    results = json.loads((tmp_path / "run" / "results.json").read_text())
-    assert results["status"] == "finished" and results["data"]["unlabeled"]["episodes"] == 6
 
 
 def test_lockstep_batches_count_and_record_each_environment_s_own_episodes(tmp_path):

@@ -1,22 +1,23 @@
-"""The recipes run end to end (tiny settings)."""
+"""The recipes run end to end (tiny settings), in this process (tests/cli.py)."""
 
 from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from tests.cli import Ran, run_command
+
+pytestmark = pytest.mark.runs
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_tabular_recipe_end_to_end(tmp_path):
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "tabular_spoildice.py"),
+        "recipes/tabular_spoildice.py",
         "seeds=[0,1]",
         "training.n_samples=3000",
         "training.n_init=200",
@@ -25,7 +26,7 @@ def test_tabular_recipe_end_to_end(tmp_path):
         "progress=false",
         f"hydra.run.dir={tmp_path}",
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT, real=True)  # spoil-tabular-check in a process of its own
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Tabular check" in proc.stdout
     assert "| SpoilDICE neural |" in proc.stdout
@@ -51,8 +52,7 @@ def test_train_experts_recipe_tiny(tmp_path):
     if importlib.util.find_spec("safety_gymnasium") is None:
         pytest.skip("safety-gymnasium not installed")
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "train_experts.py"),
+        "recipes/train_experts.py",
         "env_id=SafetyPointCircle1-v0",  # the key must not clash with the main recipe's task/ config group
         "ppo.total_frames=500",
         "ppo.frames_per_batch=500",
@@ -62,7 +62,7 @@ def test_train_experts_recipe_tiny(tmp_path):
         "progress=false",
         f"hydra.run.dir={tmp_path}",
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT, real=True)  # spoil-train-experts in a process of its own
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "SafetyPointCircle1-v0: 500 frames" in proc.stdout
     assert list(tmp_path.glob("ckpt_*.pt"))
@@ -70,8 +70,7 @@ def test_train_experts_recipe_tiny(tmp_path):
 
 def _dsrl_recipe(tmp_path, dataset, *overrides):
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "spoildice_dsrl.py"),
+        "recipes/spoildice_dsrl.py",
         "preset=smoke",
         f"dataset.source=file:{dataset}",
         "dataset.n_safe=2",
@@ -80,7 +79,7 @@ def _dsrl_recipe(tmp_path, dataset, *overrides):
         f"hydra.run.dir={tmp_path}",
         *overrides,
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc, json.loads((tmp_path / "results.json").read_text())
 
@@ -125,58 +124,15 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     assert results["dice_report"] in proc.stdout
 
 
-def test_dsrl_recipe_bc(tmp_path, tiny_pc1_dataset):
-    from spoil_torchrl.zoo import load_policy
-
-    _, results = _dsrl_recipe(
-        tmp_path, tiny_pc1_dataset, "algo=bc", "logger=none", "normalize_observations=false"
-    )
-    assert results["algo"] == "bc" and results["diagnostics"] == {} and results["status"] == "finished"
-    assert results["update_step"] == "eager"  # the smoke preset does not compile
-    assert results["matmul_precision"] == "highest"  # nor take the bfloat16 path of float32 products
-    assert [e["step"] for e in results["evaluations"]] == [100, 200]
-    assert "dice_diagnostics" not in results and "dice" not in results["evaluations"][0]
-    _, meta = load_policy(tmp_path / "checkpoints" / "policy.pt")
-    assert meta["observation_norm"] is False
-    assert not (tmp_path / "logs").exists()
-
-
-def test_dsrl_recipe_safedice_gets_its_nonpreferred_role(tmp_path, tiny_pc1_dataset):
-    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=safedice", "logger=none")
-    assert results["algo"] == "safedice" and results["status"] == "finished"
-    assert (
-        results["data"]["nonpreferred"]["safe_share"] == 0.0
-        and results["data"]["nonpreferred"]["episodes"] > 0
-    )
-    assert 0.0 <= results["diagnostics"]["alpha"] < 1.0
-
-
-def test_dsrl_recipe_dwbc_s(tmp_path, tiny_pc1_dataset):
-    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=dwbc_s", "logger=none")
-    assert results["algo"] == "dwbc_s" and results["status"] == "finished"
-    assert [e["step"] for e in results["evaluations"]] == [100, 200]
-    assert "unlabeled: safe" in (tmp_path / "config.yaml").read_text()
-
-
-def test_dsrl_recipe_coptidice_gets_the_episode_constraint(tmp_path, tiny_pc1_dataset):
-    from spoil_torchrl.objectives import per_step_cost_limit
-
-    _, results = _dsrl_recipe(tmp_path, tiny_pc1_dataset, "algo=coptidice", "logger=none")
-    assert results["algo"] == "coptidice" and results["status"] == "finished"
-    threshold = results["data"]["cost_threshold"]
-    assert results["diagnostics"]["cost_limit"] == per_step_cost_limit(threshold, 500, 0.99)
-
-
 def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dataset):
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "spoildice_dsrl.py"),
+        "recipes/spoildice_dsrl.py",
         "preset=smoke",
         f"dataset.source=file:{tiny_pc1_dataset}",
         "train.eval_interval=0",
         f"hydra.run.dir={tmp_path}",
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT)
     assert proc.returncode == 2 and "train.eval_interval = 0: expected an integer >= 1" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "results.json").exists()
 
@@ -209,8 +165,7 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
     run("b0", "bc", 0, 0.3, 4.0)
     run("b1", "bc", 1, 0.9, 9.0, status="training")  # unfinished: ignored
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "report.py"),
+        "recipes/report.py",
         str(tmp_path),
         "--out",
         str(tmp_path / "t.md"),
@@ -219,7 +174,7 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
         "--curves",
         str(tmp_path / "c.png"),
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     table = (tmp_path / "t.md").read_text()
     assert "| SpoilDICE | 2 | **0.60 ± 0.10** | **0.70 ± 0.20** |" in table  # safe on average: bold
@@ -232,14 +187,14 @@ def test_report_tables_and_plots_finished_runs(tmp_path):
 
     # a seed found twice is an error, not a silent third sample
     run("a0-again", "spoildice", 0, 0.5, 0.5)
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT)
     assert proc.returncode != 0 and "seed 0 of spoildice on d twice" in proc.stderr
     (tmp_path / "a0-again" / "results.json").unlink()
 
     # runs of one dataset with different training budgets are not put in one table
     (tmp_path / "a0" / "config.yaml").write_text("train:\n  steps: 10000\n")
     (tmp_path / "b0" / "config.yaml").write_text("train:\n  steps: 500\n")
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT)
     assert proc.returncode != 0 and "different train settings" in proc.stderr
 
 
@@ -265,14 +220,13 @@ def test_collect_demos_recipe_reuses_a_cached_dataset(tmp_path, monkeypatch):
         metadata={"fingerprint": spec.fingerprint(8), "name": spec.name},
     )
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "collect_demos.py"),
+        "recipes/collect_demos.py",
         "name=point-circle1-controlled",
         "progress=false",
         f"hydra.run.dir={tmp_path / 'run'}",
     ]
     env = {**__import__("os").environ, "SPOIL_TORCHRL_DATA_DIR": str(tmp_path)}
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    proc = run_command(cmd, cwd=ROOT, env=env, real=True)  # spoil-collect in a process of its own
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "| safe-high | 1 |" in proc.stdout
 
@@ -280,14 +234,13 @@ def test_collect_demos_recipe_reuses_a_cached_dataset(tmp_path, monkeypatch):
 def test_score_checkpoints_scores_zoo_policies(tmp_path):
     zoo = ROOT / "spoil_torchrl" / "zoo" / "SafetyPointCircle1-v0"
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "score_checkpoints.py"),
+        "recipes/score_checkpoints.py",
         str(zoo / "safe-high.pt"),
         str(zoo / "unsafe-high.pt"),
         "--episodes",
         "2",
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = run_command(cmd, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = {line.split("|")[1].strip(): line for line in proc.stdout.splitlines() if line.startswith("| ")}
     assert set(rows) == {"checkpoint", "safe-high.pt", "unsafe-high.pt"}
@@ -299,8 +252,8 @@ def test_score_checkpoints_scores_zoo_policies(tmp_path):
 
 
 def test_score_checkpoints_rejects_a_missing_path(tmp_path):
-    cmd = [sys.executable, str(ROOT / "recipes" / "score_checkpoints.py"), str(tmp_path / "nope")]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    cmd = ["recipes/score_checkpoints.py", str(tmp_path / "nope")]
+    proc = run_command(cmd, cwd=ROOT, real=True)  # spoil-score-checkpoints in a process of its own
     assert proc.returncode != 0
     assert "no such file or folder" in proc.stderr
 
@@ -346,10 +299,10 @@ def test_report_learning_curves_average_seeds_at_shared_steps():
     assert curves["normalized_cost"][0][0] == pytest.approx(0.8)
 
 
-def _recipe(name: str, *overrides: str, env=None) -> subprocess.CompletedProcess:
+def _recipe(name: str, *overrides: str, env=None, real=False) -> Ran:
     """Run ``recipes/<name>.py`` with ``overrides`` (quietly); fails the test on a non-zero exit."""
-    cmd = [sys.executable, str(ROOT / "recipes" / f"{name}.py"), "progress=false", *overrides]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT, env=env)
+    cmd = [f"recipes/{name}.py", "progress=false", *overrides]
+    proc = run_command(cmd, cwd=ROOT, env=env, real=real)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 
@@ -365,6 +318,7 @@ def test_minari_export_and_training_on_it(tmp_path, tiny_pc1_dataset):
         "dataset_id=test/tiny-pc1-v0",
         f"hydra.run.dir={tmp_path / 'export'}",
         env=env,
+        real=True,  # spoil-export-minari in a process of its own
     )
     assert "test/tiny-pc1-v0: 12 episodes" in proc.stdout and "AdroitHand" not in proc.stderr
     _recipe(
@@ -450,11 +404,6 @@ def test_report_outputs_are_files_the_user_named(tmp_path, flag, target, message
     path = (
         str(out_dir) if target == "DIR" else str(tmp_path / target) if not target.startswith("/") else target
     )
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "report.py"), str(runs), flag, path],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = run_command(["recipes/report.py", str(runs), flag, path])
     assert proc.returncode != 0 and message in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert (tmp_path / "existing.png").read_text() == "the user's own file" and not list(out_dir.iterdir())

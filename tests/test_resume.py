@@ -16,6 +16,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.cli import run_command
+
+pytestmark = pytest.mark.runs
+
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
 # 600 steps, an evaluation of 2 episodes every 100: long enough to be killed at a chosen point
@@ -28,9 +32,7 @@ def _args(dataset, run_dir, *overrides):
 
 
 def _run(dataset, run_dir, *overrides, ok=True):
-    proc = subprocess.run(
-        _args(dataset, run_dir, *overrides), capture_output=True, text=True, timeout=300, cwd=ROOT
-    )
+    proc = run_command(_args(dataset, run_dir, *overrides)[1:])  # in this process; the kills need their own
     if ok:
         assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
@@ -114,12 +116,7 @@ def test_a_run_killed_mid_training_resumes_bit_exactly(tmp_path, tiny_pc1_datase
     proc = _run(tiny_pc1_dataset, run_dir, ok=False)
     assert proc.returncode == 2 and "resume=true" in proc.stderr and "Traceback" not in proc.stderr
     # the report says why it leaves the run out
-    report = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "report.py"), str(tmp_path), str(uninterrupted)],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-    )
+    report = run_command(["recipes/report.py", tmp_path, uninterrupted], real=True)  # spoil-report's process
     assert report.returncode == 0 and f"skipped {run_dir}: killed" in report.stderr
     _run(tiny_pc1_dataset, run_dir, "resume=true")
     _same_run(uninterrupted, run_dir)
@@ -272,7 +269,7 @@ def _sweep(tmp_path, dataset, *overrides):
         f"hydra.sweep.dir={tmp_path}",
         *overrides,
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    proc = run_command(cmd[1:])
     assert proc.returncode == 0, proc.stderr[-3000:]
     runs = sorted(tmp_path.rglob("results.json"))
     return [json.loads(p.read_text()) for p in runs], runs
@@ -329,9 +326,7 @@ def test_a_diverged_run_fails_in_one_line_and_the_report_leaves_it_out(tmp_path,
     results = json.loads((run_dir / "results.json").read_text())
     assert results["status"] == "failed" and "TrainingDiverged" in results["error"]
     assert not list(ROOT.glob("MUJOCO_LOG.TXT"))
-    report = subprocess.run(
-        [sys.executable, str(ROOT / "recipes" / "report.py"), str(tmp_path)], capture_output=True, text=True
-    )
+    report = run_command(["recipes/report.py", tmp_path])
     assert report.returncode != 0 and "no finished results.json" in report.stderr
     assert f"skipped {run_dir}: failed (TrainingDiverged:" in report.stderr
 

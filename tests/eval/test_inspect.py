@@ -2,15 +2,10 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 from spoil_torchrl.inspect import main
+from tests.cli import run_command
 from tests.eval.test_mcap_io import EPISODES, write_file
 
-ROOT = Path(__file__).resolve().parents[2]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -18,14 +13,8 @@ def test_cli_prints_the_table_and_saves_a_plot(tmp_path):
     path = tmp_path / "rollouts.mcap"
     write_file(path)
     plot = tmp_path / "plots" / "rollouts.png"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.run(
-        [sys.executable, "-m", "spoil_torchrl.inspect", str(path), "--plot", str(plot)],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=tmp_path,
-    )
+    # spoil-inspect in a process of its own
+    proc = run_command(["-m", "spoil_torchrl.inspect", path, "--plot", plot], cwd=tmp_path, real=True)
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
     assert "task: OfflinePointCircle1Gymnasium-v0" in out and "4 episode(s)" in out

@@ -39,17 +39,6 @@ def test_weights_multiply_the_nll_and_are_detached(batch):
     assert all(p.grad is not None for p in loss.parameters())
 
 
-@pytest.mark.parametrize("reduction", ["none", "mean", "sum"])
-def test_reductions(batch, reduction):
-    per_sample = WeightedBCLoss(_actor(), reduction="none")
-    reduced = WeightedBCLoss(_actor(), reduction=reduction)
-    reduced.load_state_dict(per_sample.state_dict())
-    values = per_sample(batch)["loss_actor"]
-    assert values.shape == (batch["performant"].shape[0],)
-    fn = {"none": lambda x: x, "mean": torch.mean, "sum": torch.sum}[reduction]
-    torch.testing.assert_close(reduced(batch)["loss_actor"], fn(values))
-
-
 def test_actions_on_the_bound_have_finite_likelihood(batch):
     batch["performant", "action"][:4] = 1.0
     batch["performant", "action"][4:8] = -1.0
@@ -97,12 +86,3 @@ def test_rejects_a_deterministic_module():
 
     with pytest.raises(TypeError, match="get_dist"):
         WeightedBCLoss(TensorDictModule(torch.nn.Linear(3, 2), in_keys=["observation"], out_keys=["action"]))
-
-
-def test_keyword_call_and_state_dict(batch):
-    loss = WeightedBCLoss(_actor(), role="performant")
-    kwargs = {"_".join(key): batch.get(key) for key in loss.in_keys}
-    loss_actor, log_prob, weight_mean = loss(**kwargs)
-    other = WeightedBCLoss(_actor(), role="performant")
-    other.load_state_dict(loss.state_dict())
-    torch.testing.assert_close(other(batch)["loss_actor"], loss_actor)

@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+import pytest
+
+from tests.cli import run_command
+
+pytestmark = pytest.mark.runs
 
 
 def test_gridworld_recipe_end_to_end(tmp_path):
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "tabular_gridworld.py"),
+        "recipes/tabular_gridworld.py",
         "seeds=[0,1]",
         "levels=[0.3,0.99]",
         "methods.thresholds=[0.0,1.0e-4]",
@@ -21,7 +21,7 @@ def test_gridworld_recipe_end_to_end(tmp_path):
         "progress=false",
         f"hydra.run.dir={tmp_path}",
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = run_command(cmd)
     assert proc.returncode == 0, proc.stderr[-3000:]
     table = (tmp_path / "results.md").read_text()
     assert table.strip() in proc.stdout
@@ -55,8 +55,7 @@ def test_gridworld_recipe_one_seed_has_no_standard_error(tmp_path):
     """With one seed the standard error is undefined (nan, as in spoil_torchrl.eval): the table prints the mean
     alone and results.json holds null."""
     cmd = [
-        sys.executable,
-        str(ROOT / "recipes" / "tabular_gridworld.py"),
+        "recipes/tabular_gridworld.py",
         "seeds=[0]",
         "levels=[0.99]",
         "methods.thresholds=[0.0]",
@@ -67,7 +66,7 @@ def test_gridworld_recipe_one_seed_has_no_standard_error(tmp_path):
         "progress=false",
         f"hydra.run.dir={tmp_path}",
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = run_command(cmd, real=True)  # spoil-gridworld in a process of its own
     assert proc.returncode == 0, proc.stderr[-3000:]
     table = (tmp_path / "results.md").read_text()
     rows = [line for line in table.splitlines() if line.startswith("| ")]

@@ -19,6 +19,8 @@ from spoil_torchrl.tabular import flow_residual, solve_spoildice, total_variatio
 from spoil_torchrl.tabular.neural import TabularTrainingConfig, train_tabular_spoildice
 from spoil_torchrl.tabular.problems import random_dual_demo_problem
 
+pytestmark = pytest.mark.runs
+
 TV_TOLERANCE = 0.05
 
 

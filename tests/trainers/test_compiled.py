@@ -36,6 +36,8 @@ from tests.trainers.steppers import (
     spoildice,
 )
 
+pytestmark = pytest.mark.compiles
+
 
 @pytest.fixture(scope="module")
 def batches():

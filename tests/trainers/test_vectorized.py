@@ -24,6 +24,8 @@ from tests.trainers.steppers import (
     spoildice,
 )
 
+pytestmark = pytest.mark.compiles
+
 SEEDS = 3
 
 
