@@ -39,11 +39,8 @@ $(STAMP): pyproject.toml Makefile
 run: $(STAMP)
 	$(PY) recipes/spoildice_dsrl.py $(ARGS)
 
-# Two test processes (pytest-xdist), each module's tests in one of them (its fixtures made once): the 2 cores
-# of CI both busy. TEST_JOBS=0 runs the suite in this process alone.
-TEST_JOBS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadscope --durations=25 $(ARGS)
+	$(PY) -m pytest -q --durations=25 $(ARGS)
 
 # The inner loop: everything but what trains, starts a command end to end or compiles (markers "runs", "compiles").
 test-fast: $(STAMP)
