@@ -79,6 +79,34 @@ def _restore_logging(state: dict) -> None:
         logger.propagate, logger.disabled = propagate, disabled
 
 
+class _Capture(io.StringIO):
+    """What the command prints; a handler that closes its stream (below) cannot close it."""
+
+    def close(self) -> None:
+        pass
+
+
+def _shield_streams(out: io.StringIO, err: io.StringIO) -> list:
+    """Point every logging handler that holds this process's stdout or stderr at the captures for the command.
+
+    Hydra configures logging with ``dictConfig``, which closes every handler of the process. Some handlers
+    close their stream then, unless it is ``sys.stdout`` / ``sys.stderr`` at that moment (absl's, made when
+    tensorboard is imported, holds the stderr it found at import): with the command's output captured, that
+    stream would be pytest's capture of stderr, closed for every later test."""
+    process = {id(sys.stdout): out, id(sys.__stdout__): out, id(sys.stderr): err, id(sys.__stderr__): err}
+    swapped = []
+    for ref in list(logging._handlerList):
+        handler = ref()
+        stream = getattr(handler, "stream", None)
+        if stream is not None and id(stream) in process:
+            try:
+                handler.stream = process[id(stream)]
+            except AttributeError:  # a read-only view of another handler's stream (absl's), swapped there
+                continue
+            swapped.append((handler, stream))
+    return swapped
+
+
 def _clear_hydra() -> None:
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
@@ -103,12 +131,13 @@ def run_command(
         )
         return Ran(proc.returncode, proc.stdout, proc.stderr)
     program, main, args = _entry_point([str(a) for a in argv])
-    out, err = io.StringIO(), io.StringIO()
+    out, err = _Capture(), _Capture()
     saved_argv, saved_cwd, saved_env = sys.argv, os.getcwd(), dict(os.environ)
     saved_signals = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     saved_threads, saved_logging = torch.get_num_threads(), _logging_state()
     code = 0
     _clear_hydra()
+    swapped = _shield_streams(out, err)
     try:
         sys.argv = [program, *args]
         if env is not None:
@@ -141,5 +170,7 @@ def run_command(
             signal.signal(signum, handler)
         torch.set_num_threads(saved_threads)
         _restore_logging(saved_logging)
+        for handler, stream in swapped:
+            handler.stream = stream
         _clear_hydra()
     return Ran(code, out.getvalue(), err.getvalue())
