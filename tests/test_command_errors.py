@@ -107,7 +107,8 @@ def test_the_recipe_reports_user_errors_in_one_line(tmp_path, overrides, match):
         f"hydra.run.dir={run_dir}",
         *overrides,
     ]
-    proc = run_command(cmd, cwd=ROOT)
+    # wandb keeps process-wide state (an earlier test's offline run would let it start here): its own process
+    proc = run_command(cmd, cwd=ROOT, real=any(o.startswith("logger=wandb") for o in overrides))
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert len(errors) == 1 and re.search(match, errors[0]), proc.stderr[-2000:]
