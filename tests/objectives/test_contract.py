@@ -207,12 +207,10 @@ def test_state_dict_round_trip(name):
         p.data.add_(0.1 * torch.randn_like(p))
     batch = case.batch()
     assert set(case.state_has) <= set(a.state_dict())
-    before = _outputs(b, batch)
-    assert any(
-        not torch.allclose(v, _outputs(a, batch)[k]) for k, v in before.items() if k.startswith("loss_")
-    )
+    before, expected = _outputs(b, batch), _outputs(a, batch)
+    assert any(not torch.allclose(v, expected[k]) for k, v in before.items() if k.startswith("loss_"))
     b.load_state_dict(a.state_dict())
-    _assert_same(_outputs(b, batch), _outputs(a, batch))
+    _assert_same(_outputs(b, batch), expected)
 
 
 @pytest.mark.parametrize("name", NAMES)
