@@ -39,12 +39,16 @@ $(STAMP): pyproject.toml Makefile
 run: $(STAMP)
 	$(PY) recipes/spoildice_dsrl.py $(ARGS)
 
+# The suite runs in TEST_WORKERS processes (pytest-xdist; "auto": one per core, 0: in this process alone).
+TEST_WORKERS ?= auto
+XDIST = -n $(TEST_WORKERS) --dist loadscope
+
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=25 $(ARGS)
+	$(PY) -m pytest -q $(XDIST) --durations=25 $(ARGS)
 
 # The inner loop: everything but what trains, starts a command end to end or compiles (markers "runs", "compiles").
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow and not runs and not compiles" $(ARGS)
+	$(PY) -m pytest -q $(XDIST) -m "not slow and not runs and not compiles" $(ARGS)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow $(ARGS)

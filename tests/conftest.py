@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
+from filelock import FileLock
 from tensordict import TensorDict
 
 OBS_DIM, ACT_DIM = 5, 2
@@ -74,10 +77,16 @@ def tiny_pc1_dataset(tmp_path_factory):
     from spoil_torchrl.data import POOLS, Segment, collect
 
     segments = [Segment(pool, f"zoo:{pool}", 3) for pool in POOLS]
-    path = tmp_path_factory.mktemp("data") / "tiny-pc1.hdf5"
-    return collect(
-        "SafetyPointCircle1-v0", segments, path, seed=0, num_envs=3, reference_episodes=2, progress=False
-    )
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        path = tmp_path_factory.mktemp("data") / "tiny-pc1.hdf5"
+    else:  # under pytest -n, one file for all the workers: the first one to get here makes it
+        path = tmp_path_factory.getbasetemp().parent / "tiny-pc1.hdf5"
+    with FileLock(f"{path}.lock"):
+        if path.is_file():
+            return path
+        return collect(
+            "SafetyPointCircle1-v0", segments, path, seed=0, num_envs=3, reference_episodes=2, progress=False
+        )
 
 
 #: Modules whose doctests need an optional extra: (module file, the import that decides, the extra).

@@ -21,7 +21,7 @@ RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
 
 
 def _command(dataset: Path, sweep_dir: Path) -> list[str]:
-    # 2 levels x 2 methods x 1 seed of Fig. 4c on a tiny collected file; 600 steps, so a cell can be killed
+    # 2 levels x 2 methods x 1 seed of Fig. 4c on a tiny collected file; 300 steps, so a cell can be killed
     return [
         sys.executable,
         RECIPE,
@@ -32,7 +32,8 @@ def _command(dataset: Path, sweep_dir: Path) -> list[str]:
         "algo=bc,fbc",
         "seed=0",
         "preset=smoke",
-        "train.steps=600",
+        "train.steps=300",
+        "train.batch_size=64",
         "train.eval_episodes=2",
         "logger=none",
         f"dataset.source=file:{dataset}",

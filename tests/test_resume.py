@@ -1,15 +1,10 @@
 """Runs that survive: a run killed with SIGKILL (mid-training, mid-evaluation) resumes and ends exactly as an
-uninterrupted run; a start never destroys a run; sweeps keep every job; the Hydra launchers work."""
+uninterrupted run, ``seeds=[...]`` included; a start or a refused command never changes a run."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
-import signal
-import subprocess
-import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -17,32 +12,9 @@ import pytest
 import torch
 
 from tests.cli import run_command
+from tests.short_runs import evaluations, files, kill_when, run_short
 
 pytestmark = pytest.mark.runs
-
-ROOT = Path(__file__).resolve().parents[1]
-RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
-# 600 steps, an evaluation of 2 episodes every 100: long enough to be killed at a chosen point
-SHORT = ["preset=smoke", "train.steps=600", "train.eval_episodes=2", "progress=false"]
-
-
-def _args(dataset, run_dir, *overrides):
-    data = [f"dataset.source=file:{dataset}", "dataset.n_safe=2", "dataset.n_performant=2"]
-    return [sys.executable, RECIPE, *SHORT, *data, f"hydra.run.dir={run_dir}", *overrides]
-
-
-def _run(dataset, run_dir, *overrides, ok=True):
-    proc = run_command(_args(dataset, run_dir, *overrides)[1:])  # in this process; the kills need their own
-    if ok:
-        assert proc.returncode == 0, proc.stderr[-3000:]
-    return proc
-
-
-def _evaluations(run_dir: Path) -> int:
-    try:
-        return len(json.loads((run_dir / "results.json").read_text())["evaluations"])
-    except (OSError, ValueError, KeyError):
-        return 0
 
 
 def _episodes_on_disk(run_dir: Path) -> int:
@@ -54,22 +26,6 @@ def _episodes_on_disk(run_dir: Path) -> int:
             return int(read_rollouts(run_dir / "rollouts.mcap").episodes.batch_size[0])
     except Exception:  # not there yet, or caught mid-header
         return 0
-
-
-def _kill_when(dataset, run_dir, condition, *overrides) -> None:
-    proc = subprocess.Popen(
-        _args(dataset, run_dir, *overrides), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT
-    )
-    try:
-        deadline = time.monotonic() + 240
-        while not condition(run_dir):
-            assert proc.poll() is None, "the run ended before it could be killed"
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 def _plain_mcap_episodes(path: Path) -> list[tuple[int, int]]:
@@ -86,7 +42,7 @@ def _plain_mcap_episodes(path: Path) -> list[tuple[int, int]]:
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, tiny_pc1_dataset):
     run_dir = tmp_path_factory.mktemp("full")
-    _run(tiny_pc1_dataset, run_dir)
+    run_short(tiny_pc1_dataset, run_dir)
     return run_dir
 
 
@@ -110,24 +66,24 @@ def test_a_run_killed_mid_training_resumes_bit_exactly(tmp_path, tiny_pc1_datase
     from spoil_torchrl.runs.directory import run_status
 
     run_dir = tmp_path / "run"
-    _kill_when(tiny_pc1_dataset, run_dir, lambda d: _evaluations(d) >= 2)
+    kill_when(tiny_pc1_dataset, run_dir, lambda d: evaluations(d) >= 2)
     assert run_status(run_dir) == "killed"
     # a plain restart refuses to overwrite it, with one clear line and no traceback
-    proc = _run(tiny_pc1_dataset, run_dir, ok=False)
+    proc = run_short(tiny_pc1_dataset, run_dir, ok=False)
     assert proc.returncode == 2 and "resume=true" in proc.stderr and "Traceback" not in proc.stderr
     # the report says why it leaves the run out
     report = run_command(["recipes/report.py", tmp_path, uninterrupted], real=True)  # spoil-report's process
     assert report.returncode == 0 and f"skipped {run_dir}: killed" in report.stderr
-    _run(tiny_pc1_dataset, run_dir, "resume=true")
+    run_short(tiny_pc1_dataset, run_dir, "resume=true")
     _same_run(uninterrupted, run_dir)
 
 
 def test_a_run_killed_mid_evaluation_resumes_bit_exactly(tmp_path, tiny_pc1_dataset, uninterrupted):
     run_dir = tmp_path / "run"
     # killed while an evaluation's episodes are on disk but the evaluation is not recorded yet
-    _kill_when(tiny_pc1_dataset, run_dir, lambda d: _episodes_on_disk(d) > 2 * max(_evaluations(d), 1))
-    assert _episodes_on_disk(run_dir) > 2 * _evaluations(run_dir)
-    _run(tiny_pc1_dataset, run_dir, "resume=auto")
+    kill_when(tiny_pc1_dataset, run_dir, lambda d: _episodes_on_disk(d) > 2 * max(evaluations(d), 1))
+    assert _episodes_on_disk(run_dir) > 2 * evaluations(run_dir)
+    run_short(tiny_pc1_dataset, run_dir, "resume=auto")
     _same_run(uninterrupted, run_dir)
 
 
@@ -135,16 +91,16 @@ def test_seeds_run_each_seed_as_its_own_run_and_resume_bit_exactly(tmp_path, tin
     """``seeds=[0,1]``: each seed's files, settings and pre-training are its single run's, its main stage the
     same up to float rounding (one vmapped update). Killed between its seeds' checkpoints, it continues from the
     last step both seeds have (seed 0's previous checkpoint) and ends as the uninterrupted run."""
-    seeds = ["seeds=[0,1]", "train.steps=400"]
+    seeds = ["seeds=[0,1]"]
     full = tmp_path / "full"
-    _run(tiny_pc1_dataset, full, *seeds)
-    alone = json.loads((uninterrupted / "results.json").read_text())  # seed 0 alone, 600 steps
+    run_short(tiny_pc1_dataset, full, *seeds)
+    alone = json.loads((uninterrupted / "results.json").read_text())  # seed 0 alone
     for seed in (0, 1):
         results = json.loads((full / f"seed{seed}" / "results.json").read_text())
         assert results["status"] == "finished" and results["seed"] == seed
         assert results["update_step"] == "vectorised, eager"  # the smoke preset does not compile
-        assert [e["step"] for e in results["evaluations"]] == [100, 200, 300, 400]
-        assert len(_plain_mcap_episodes(full / f"seed{seed}" / "rollouts.mcap")) == 8
+        assert [e["step"] for e in results["evaluations"]] == [100, 200, 300]
+        assert len(_plain_mcap_episodes(full / f"seed{seed}" / "rollouts.mcap")) == 6
         assert list((full / f"seed{seed}" / "logs").rglob("dice.loss_nu.csv"))
         config = (full / f"seed{seed}" / "config.yaml").read_text()
         assert f"\nseed: {seed}\n" in config and "seeds" not in config  # the single run's settings
@@ -160,17 +116,17 @@ def test_seeds_run_each_seed_as_its_own_run_and_resume_bit_exactly(tmp_path, tin
 
     killed = tmp_path / "killed"
     saved = killed / "seed1" / "checkpoints"
-    _kill_when(
+    kill_when(
         tiny_pc1_dataset,
         killed,
-        lambda d: (saved / "training_state.pt").is_file() and _step(saved / "training_state.pt") == 300,
+        lambda d: (saved / "training_state.pt").is_file() and _step(saved / "training_state.pt") == 200,
         *seeds,
     )
-    # as if killed between the two seeds' checkpoints of step 300: seed 1's is still the one of step 200
+    # as if killed between the two seeds' checkpoints of step 200: seed 1's is still the one of step 100
     shutil.copyfile(saved / "training_state.previous.pt", saved / "training_state.pt")
-    assert _step(saved / "training_state.pt") == 200
-    _run(tiny_pc1_dataset, killed, *seeds, "resume=true")
-    assert json.loads((killed / "seed0" / "results.json").read_text())["resumed_at"] == [200]
+    assert _step(saved / "training_state.pt") == 100
+    run_short(tiny_pc1_dataset, killed, *seeds, "resume=true")
+    assert json.loads((killed / "seed0" / "results.json").read_text())["resumed_at"] == [100]
     for seed in (0, 1):
         _same_run(full / f"seed{seed}", killed / f"seed{seed}")
 
@@ -205,100 +161,22 @@ def _step(checkpoint: Path) -> int | None:
         return None
 
 
-def _files(run_dir: Path) -> dict[str, tuple[bytes, int]]:
-    """Every file of the directory with its bytes and modification time (what a refused command must keep)."""
-    return {
-        str(p.relative_to(run_dir)): (p.read_bytes(), p.stat().st_mtime_ns)
-        for p in run_dir.rglob("*")
-        if p.is_file()
-    }
-
-
 def test_resume_refuses_other_settings_and_a_damaged_checkpoint(tmp_path, tiny_pc1_dataset):
     run_dir = tmp_path / "run"
-    _kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
-    before = _files(run_dir)
+    kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
+    before = files(run_dir)
     assert ".hydra/overrides.yaml" in before and "run.lock" in before  # the killed run's record and lock
-    proc = _run(tiny_pc1_dataset, run_dir, "resume=true", "train.lr=0.1", ok=False)
+    proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", "train.lr=0.1", ok=False)
     assert proc.returncode == 2 and "train.lr" in proc.stderr
-    assert _files(run_dir) == before  # the refused command changed nothing, Hydra's record included
-    proc = _run(tiny_pc1_dataset, run_dir, ok=False)  # a start over it
-    assert proc.returncode == 2 and "already holds a run" in proc.stderr and _files(run_dir) == before
+    assert files(run_dir) == before  # the refused command changed nothing, Hydra's record included
+    proc = run_short(tiny_pc1_dataset, run_dir, ok=False)  # a start over it
+    assert proc.returncode == 2 and "already holds a run" in proc.stderr and files(run_dir) == before
     checkpoint = run_dir / "checkpoints" / "training_state.pt"
     data = bytearray(checkpoint.read_bytes())
     data[len(data) // 2] ^= 0xFF
     checkpoint.write_bytes(bytes(data))
-    proc = _run(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
+    proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
     assert proc.returncode == 2 and str(checkpoint) in proc.stderr and "Traceback" not in proc.stderr
-
-
-def test_sigterm_marks_the_run_interrupted_and_keeps_its_checkpoint(tmp_path, tiny_pc1_dataset):
-    run_dir = tmp_path / "run"
-    proc = subprocess.Popen(
-        _args(tiny_pc1_dataset, run_dir),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        cwd=ROOT,
-        text=True,
-    )
-    deadline = time.monotonic() + 240
-    while _evaluations(run_dir) < 1 and time.monotonic() < deadline:
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
-    _, stderr = proc.communicate(timeout=120)
-    results = json.loads((run_dir / "results.json").read_text())
-    assert results["status"] == "interrupted" and "SIGTERM" in results["error"]
-    assert proc.returncode == 130 and "Traceback" not in stderr, stderr[-2000:]
-    line = [ln for ln in stderr.splitlines() if ln.startswith("interrupted; continue with: python")]
-    assert len(line) == 1 and f"hydra.run.dir={run_dir} resume=true" in line[0]
-    assert (run_dir / "checkpoints" / "training_state.pt").exists() and not (run_dir / "run.lock").exists()
-
-
-def _sweep(tmp_path, dataset, *overrides):
-    cmd = [
-        sys.executable,
-        RECIPE,
-        "-m",
-        "preset=smoke",
-        "algo=bc",
-        "logger=none",
-        "progress=false",
-        f"dataset.source=file:{dataset}",
-        "dataset.n_safe=2",
-        "dataset.n_performant=2",
-        f"hydra.sweep.dir={tmp_path}",
-        *overrides,
-    ]
-    proc = run_command(cmd[1:])
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    runs = sorted(tmp_path.rglob("results.json"))
-    return [json.loads(p.read_text()) for p in runs], runs
-
-
-def test_a_sweep_keeps_every_job(tmp_path, tiny_pc1_dataset):
-    results, paths = _sweep(tmp_path, tiny_pc1_dataset, "train.lr=1e-4,3e-4")
-    assert len(paths) == 2 and len({p.parent for p in paths}) == 2
-    assert all(r["status"] == "finished" for r in results)
-    lrs = sorted(
-        float(line.split(":")[1])
-        for p in paths
-        for line in (p.parent / "config.yaml").read_text().splitlines()
-        if line.strip().startswith("lr:") and line.startswith("  lr")
-    )
-    assert lrs == [1e-4, 3e-4]
-
-
-@pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
-def test_hydra_launchers_run_a_two_job_sweep(tmp_path, tiny_pc1_dataset, launcher):
-    plugin = {
-        "joblib": "hydra_plugins.hydra_joblib_launcher",
-        "submitit_local": "hydra_plugins.hydra_submitit_launcher",
-    }
-    if importlib.util.find_spec(plugin[launcher]) is None:
-        pytest.skip(f"the launchers extra is not installed ({plugin[launcher]})")
-    extra = ["hydra.launcher.n_jobs=2"] if launcher == "joblib" else ["hydra.launcher.timeout_min=10"]
-    results, paths = _sweep(tmp_path, tiny_pc1_dataset, f"hydra/launcher={launcher}", "seed=0,1", *extra)
-    assert sorted(r["seed"] for r in results) == [0, 1] and all(r["status"] == "finished" for r in results)
 
 
 def test_commands_refused_on_a_finished_run_leave_it_byte_identical(
@@ -306,48 +184,12 @@ def test_commands_refused_on_a_finished_run_leave_it_byte_identical(
 ):
     run_dir = tmp_path / "run"
     shutil.copytree(uninterrupted, run_dir)
-    before = _files(run_dir)
+    before = files(run_dir)
     for overrides, message in (
         ((), "already holds a run"),
         (("resume=true",), "has finished"),
         (("resume=auto", "train.lr=0.5"), "has finished"),
     ):
-        proc = _run(tiny_pc1_dataset, run_dir, *overrides, ok=False)
+        proc = run_short(tiny_pc1_dataset, run_dir, *overrides, ok=False)
         assert proc.returncode == 2 and message in proc.stderr, proc.stderr[-2000:]
-        assert _files(run_dir) == before, overrides
-
-
-def test_a_diverged_run_fails_in_one_line_and_the_report_leaves_it_out(tmp_path, tiny_pc1_dataset):
-    run_dir = tmp_path / "diverged"
-    proc = _run(tiny_pc1_dataset, run_dir, "train.lr=1e10", ok=False)
-    failed = [ln for ln in proc.stderr.splitlines() if ln.startswith("failed: ")]
-    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
-    assert len(failed) == 1 and "is not finite" in failed[0] and "by step" in failed[0]
-    results = json.loads((run_dir / "results.json").read_text())
-    assert results["status"] == "failed" and "TrainingDiverged" in results["error"]
-    assert not list(ROOT.glob("MUJOCO_LOG.TXT"))
-    report = run_command(["recipes/report.py", tmp_path])
-    assert report.returncode != 0 and "no finished results.json" in report.stderr
-    assert f"skipped {run_dir}: failed (TrainingDiverged:" in report.stderr
-
-
-def test_a_full_disk_fails_the_run_in_one_line_and_leaves_no_temporary_file(tmp_path, tiny_pc1_dataset):
-    import resource
-
-    def small_files():  # every write past 150 kB fails (EFBIG), as on a full disk
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (150_000, 150_000))
-
-    run_dir = tmp_path / "run"
-    proc = subprocess.run(
-        _args(tiny_pc1_dataset, run_dir),
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=ROOT,
-        preexec_fn=small_files,
-    )
-    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
-    assert proc.stderr.strip().splitlines()[-1].startswith("error: cannot write")
-    assert json.loads((run_dir / "results.json").read_text())["status"] == "failed"
-    assert not [p for p in run_dir.rglob("*.tmp")] and not (run_dir / "run.lock").exists()
+        assert files(run_dir) == before, overrides

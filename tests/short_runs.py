@@ -1,0 +1,67 @@
+"""Short runs of the main recipe on the suite's tiny collected dataset, for the tests of what becomes of a run:
+killed and resumed, refused, interrupted, failed, swept."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from tests.cli import run_command
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
+# 300 steps of 64 samples, an evaluation of 2 episodes every 100: long enough to be killed at a chosen point
+SHORT = ["preset=smoke", "train.steps=300", "train.batch_size=64", "train.eval_episodes=2", "progress=false"]
+
+
+def recipe_args(dataset, run_dir, *overrides):
+    data = [f"dataset.source=file:{dataset}", "dataset.n_safe=2", "dataset.n_performant=2"]
+    return [sys.executable, RECIPE, *SHORT, *data, f"hydra.run.dir={run_dir}", *overrides]
+
+
+def run_short(dataset, run_dir, *overrides, ok=True):
+    proc = run_command(
+        recipe_args(dataset, run_dir, *overrides)[1:]
+    )  # in this process; the kills need their own
+    if ok:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def evaluations(run_dir: Path) -> int:
+    try:
+        return len(json.loads((run_dir / "results.json").read_text())["evaluations"])
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+def kill_when(dataset, run_dir, condition, *overrides) -> None:
+    proc = subprocess.Popen(
+        recipe_args(dataset, run_dir, *overrides),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=ROOT,
+    )
+    try:
+        deadline = time.monotonic() + 240
+        while not condition(run_dir):
+            assert proc.poll() is None, "the run ended before it could be killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def files(run_dir: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file of the directory with its bytes and modification time (what a refused command must keep)."""
+    return {
+        str(p.relative_to(run_dir)): (p.read_bytes(), p.stat().st_mtime_ns)
+        for p in run_dir.rglob("*")
+        if p.is_file()
+    }
