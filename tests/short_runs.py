@@ -39,23 +39,25 @@ def evaluations(run_dir: Path) -> int:
         return 0
 
 
-def kill_when(dataset, run_dir, condition, *overrides) -> None:
-    proc = subprocess.Popen(
-        recipe_args(dataset, run_dir, *overrides),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        cwd=ROOT,
-    )
+def kill_command_when(argv: list[str], condition, *, timeout: float = 240) -> None:
+    """Start ``argv`` (a command line, output discarded) and SIGKILL it as soon as ``condition()`` holds;
+    fails if the command ends first or ``timeout`` seconds pass."""
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
     try:
-        deadline = time.monotonic() + 240
-        while not condition(run_dir):
-            assert proc.poll() is None, "the run ended before it could be killed"
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert proc.poll() is None, "the command ended before it could be killed"
             assert time.monotonic() < deadline
             time.sleep(0.01)
         proc.send_signal(signal.SIGKILL)
     finally:
         proc.kill()
         proc.wait()
+
+
+def kill_when(dataset, run_dir, condition, *overrides) -> None:
+    """A short run in ``run_dir``, killed with SIGKILL as soon as ``condition(run_dir)`` holds."""
+    kill_command_when(recipe_args(dataset, run_dir, *overrides), lambda: condition(run_dir))
 
 
 def files(run_dir: Path) -> dict[str, tuple[bytes, int]]:

@@ -4,15 +4,13 @@ passes over the finished cells and resumes a killed one, and ``spoil-report --fi
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.cli import run_command
+from tests.short_runs import kill_command_when
 
 pytestmark = pytest.mark.runs
 
@@ -64,31 +62,21 @@ CELLS = {
 def test_an_experiment_sweep_names_skips_resumes_and_draws_its_cells(tmp_path, tiny_pc1_dataset):
     sweep_dir = tmp_path / "fig4c"
     command = _command(tiny_pc1_dataset, sweep_dir)
+
     # first start, killed while its third cell is training (after that cell's first checkpoint)
-    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
-    try:
-        deadline = time.monotonic() + 300
+    def third_cell_checkpointed() -> bool:
+        cells = _cells(sweep_dir)
+        training = [
+            d
+            for d, r in cells.items()
+            if r["status"] == "training" and (sweep_dir / d / "checkpoints").is_dir()
+        ]
+        done = [d for d, r in cells.items() if r["status"] == "finished"]
+        return len(done) == 2 and any(
+            (sweep_dir / d / "checkpoints" / "training_state.pt").is_file() for d in training
+        )
 
-        def third_cell_checkpointed() -> bool:
-            cells = _cells(sweep_dir)
-            training = [
-                d
-                for d, r in cells.items()
-                if r["status"] == "training" and (sweep_dir / d / "checkpoints").is_dir()
-            ]
-            done = [d for d, r in cells.items() if r["status"] == "finished"]
-            return len(done) == 2 and any(
-                (sweep_dir / d / "checkpoints" / "training_state.pt").is_file() for d in training
-            )
-
-        while not third_cell_checkpointed():
-            assert proc.poll() is None, "the sweep ended before its third cell could be killed"
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.kill()
-        proc.wait()
+    kill_command_when(command, third_cell_checkpointed, timeout=300)
     before = _cells(sweep_dir)
     killed = [d for d, r in before.items() if r["status"] != "finished"]
     assert len(killed) == 1 and len(before) == 3
