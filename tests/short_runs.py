@@ -18,21 +18,22 @@ RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
 SHORT = ["preset=smoke", "train.steps=300", "train.batch_size=64", "train.eval_episodes=2", "progress=false"]
 
 
-def recipe_args(dataset, run_dir, *overrides):
+def recipe_args(dataset, run_dir, *overrides) -> list[str]:
+    """The command line of a short run in ``run_dir`` on ``dataset`` (2 safe and 2 performant episodes)."""
     data = [f"dataset.source=file:{dataset}", "dataset.n_safe=2", "dataset.n_performant=2"]
     return [sys.executable, RECIPE, *SHORT, *data, f"hydra.run.dir={run_dir}", *overrides]
 
 
 def run_short(dataset, run_dir, *overrides, ok=True):
-    proc = run_command(
-        recipe_args(dataset, run_dir, *overrides)[1:]
-    )  # in this process; the kills need their own
+    """A short run in this process (the kills need a process of their own); ``ok``: it must succeed."""
+    proc = run_command(recipe_args(dataset, run_dir, *overrides)[1:])
     if ok:
         assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 
 
 def evaluations(run_dir: Path) -> int:
+    """How many evaluations the run in ``run_dir`` has recorded so far (0 before its first results.json)."""
     try:
         return len(json.loads((run_dir / "results.json").read_text())["evaluations"])
     except (OSError, ValueError, KeyError):

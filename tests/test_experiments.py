@@ -10,12 +10,9 @@ from pathlib import Path
 import pytest
 
 from tests.cli import run_command
-from tests.short_runs import kill_command_when
+from tests.short_runs import RECIPE, ROOT, kill_command_when
 
 pytestmark = pytest.mark.runs
-
-ROOT = Path(__file__).resolve().parents[1]
-RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
 
 
 def _command(dataset: Path, sweep_dir: Path) -> list[str]:
