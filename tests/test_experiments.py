@@ -153,7 +153,7 @@ def test_every_experiment_expands_into_its_grid(name):
     if name != "figI":  # Fig. I: SpoilDICE's kappa, five seeds
         assert params.algo == "spoildice,bc,fbc,jfbc,demodice_s,dwbc_s" and params.seed == "0,1,2"
     if name == "tableK":
-        assert params.dataset == "point_circle2_replay" and cfg.dataset.scheme == "replay"
+        assert params.dataset == "point_circle1_replay" and cfg.dataset.scheme == "replay"
     elif name not in ("figI", "figH"):  # Fig. H and I: controlled PointCircle1 only
         assert params.dataset == "point_circle1_controlled"
     else:
