@@ -8,6 +8,11 @@ The family uses slip 0.1 (a random next state 10 % of the time). Seed 2 of this 
 and documented in CONTRIBUTING.md: its exact dual nu spans ~48 nats, and the one-sample estimate of
 (T nu)(s, a) inside exp(.) (shared by every sample-based DICE method) then overweights the rare transitions
 into the high-nu state, so the *population* optimum of the neural objective itself sits at TV 0.23.
+
+The runs here are shorter than :class:`TabularTrainingConfig`'s defaults (700 discriminator and 1,500 DICE steps
+instead of 2,000 and 4,000) with step sizes doubled or tripled to match; both schedules land well inside the
+tolerance (TV 0.020, 0.021, 0.016 for seeds 0, 1, 3, against 0.016, 0.021, 0.013 with the defaults), and seed 2
+stays at TV 0.20.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from spoil_torchrl.tabular.problems import random_dual_demo_problem
 pytestmark = pytest.mark.runs
 
 TV_TOLERANCE = 0.05
+CONFIG = {"discriminator_steps": 700, "dice_steps": 1_500, "nu_lr": 2e-2, "lagrange_lr": 3e-2, "actor_lr": 2e-2}
 
 
 @pytest.mark.parametrize("seed", [0, 1, 3])
@@ -33,7 +39,7 @@ def test_neural_spoildice_matches_the_exact_solution(seed):
     # the constraint matters: plain BC (d_P) is far from the answer
     assert total_variation(problem.d_P, exact) > 0.2
 
-    result = train_tabular_spoildice(problem, TabularTrainingConfig(seed=seed))
+    result = train_tabular_spoildice(problem, TabularTrainingConfig(seed=seed, **CONFIG))
 
     assert (result.support == (problem.d_S > 0)).all(), "the kappa-quantile support must match supp(d_S)"
     assert total_variation(result.occupancy, exact) <= TV_TOLERANCE
@@ -46,5 +52,5 @@ def test_neural_spoildice_matches_the_exact_solution(seed):
 def test_known_limitation_seed_2_stays_off():
     problem = random_dual_demo_problem(seed=2, slip=0.1)
     exact = solve_spoildice(problem.mdp, problem.d_P, problem.d_S)
-    result = train_tabular_spoildice(problem, TabularTrainingConfig(seed=2))
+    result = train_tabular_spoildice(problem, TabularTrainingConfig(seed=2, **CONFIG))
     assert total_variation(result.occupancy, exact) <= TV_TOLERANCE
