@@ -404,3 +404,45 @@ def test_omnisafe_options_stop_epochs_on_kl_decay_the_actor_rate_and_standardise
         PPOConfig(target_kl=0.0)
     with pytest.raises(ValueError, match="lr_decay"):
         PPOConfig(lr_decay="yes")
+
+
+@needs_safety_gymnasium
+def test_fixed_cost_penalty_trains_on_the_penalised_advantage_with_a_fixed_multiplier(tmp_path, monkeypatch):
+    from spoil_torchrl.experts import ppo as ppo_module
+    from spoil_torchrl.experts import ppo_update as update_module
+
+    seen = []
+    original = update_module.ppo_update
+
+    def watched(learner, batch, config, index, cost, *, batches=1):
+        epochs = original(learner, batch, config, index, cost, batches=batches)
+        reward_advantage = batch["value_target"] - batch["state_value"]  # GAE's target is advantage + value
+        seen.append((reward_advantage, batch["cost_advantage"].clone(), batch["advantage"].clone()))
+        return epochs
+
+    monkeypatch.setattr(ppo_module, "ppo_update", watched)
+    beta = 2.5
+    log = _train(tmp_path / "penalty", _tiny_config(lagrangian=False, cost_penalty=beta))
+    # cost limit 0 and a random policy that leaves the band: a Lagrangian multiplier would have moved
+    assert [line["lagrange"] for line in log] == [beta] * 4
+    for reward_advantage, cost_advantage, advantage in seen:
+        assert cost_advantage.abs().max() > 0  # the penalty has something to act on
+        penalised = reward_advantage - beta * cost_advantage  # the advantage of reward - beta * cost
+        expected = (penalised - penalised.mean()) / (penalised.std() + 1e-8)
+        torch.testing.assert_close(advantage, expected, rtol=1e-4, atol=1e-4)
+    plain = _train(tmp_path / "plain", _tiny_config(lagrangian=False))
+    assert [line["lagrange"] for line in plain] == [0.0] * 4
+    penalised_actor = torch.load(tmp_path / "penalty" / "ckpt_000002000.pt", weights_only=True)["actor"]
+    plain_actor = torch.load(tmp_path / "plain" / "ckpt_000002000.pt", weights_only=True)["actor"]
+    assert any(not torch.equal(penalised_actor[k], plain_actor[k]) for k in plain_actor)
+    assert json.loads((tmp_path / "penalty" / "config.json").read_text())["cost_penalty"] == beta
+
+
+def test_ppo_config_refuses_a_bad_cost_penalty():
+    with pytest.raises(ValueError, match="cost_penalty = -1.0: expected a finite number >= 0"):
+        PPOConfig(cost_penalty=-1.0)
+    with pytest.raises(ValueError, match="cost_penalty = 'high'"):
+        PPOConfig(cost_penalty="high")
+    with pytest.raises(ValueError, match="needs ppo.lagrangian=false"):
+        PPOConfig(cost_penalty=1.0, lagrangian=True)
+    assert PPOConfig(cost_penalty=1).cost_penalty == 1

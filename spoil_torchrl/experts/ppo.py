@@ -7,7 +7,8 @@ multiplier :math:`\\lambda \\ge 0` on the episode-cost limit :math:`d`: the poli
 finished in the batch. The Adam step (OmniSafe's choice) moves :math:`\\lambda` by about ``lagrange_lr`` per
 batch whatever the size of the violation; a plain gradient step with episode costs in the hundreds makes
 :math:`\\lambda` explode (measured: 114 after 14 batches with rate 0.05) and the policy then ignores reward. With
-``lagrangian=False`` it is plain PPO.
+``lagrangian=False`` it is plain PPO, and with ``cost_penalty`` :math:`\\beta > 0` as well, PPO on the reward
+minus :math:`\\beta` times the cost: the same objective with the multiplier fixed at :math:`\\beta`.
 
 Every batch starts from a reset seeded by the run's seed and the batch's index (:func:`batch_seed`), and an
 episode still running when the batch is full is cut there (its last step bootstraps from the critic, like a time
@@ -64,6 +65,8 @@ class PPOConfig:
     its own before they are combined (``"combined"``: the combined one); ``target_kl`` stops a batch's epochs
     early once the policy's estimated KL divergence from the one that collected it passes it (OmniSafe: 0.02);
     ``lr_decay`` lowers the actor's learning rate linearly to 0 over the run.
+    ``cost_penalty`` > 0 (with ``lagrangian=False``) trains on the reward minus ``cost_penalty`` times the cost,
+    a fixed multiplier where PPO-Lagrangian adapts one: a demonstrator that keeps the constraint by a penalty.
     ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
     (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
     TorchRL environment); ``frames_per_batch`` must split evenly over them.
@@ -85,6 +88,7 @@ class PPOConfig:
     cost_limit: float = 25.0
     lagrange_lr: float = 0.035
     lagrange_init: float = 0.0
+    cost_penalty: float = 0.0
     checkpoint_every: int = 5  # batches
     normalize_observations: bool = False
     record_episodes: int = 0
@@ -143,6 +147,14 @@ class PPOConfig:
                 or value <= 0
             ):
                 raise ValueError(f"ppo.{name} = {value!r}: expected a finite number > 0")
+        penalty = self.cost_penalty
+        if isinstance(penalty, bool) or not isinstance(penalty, (int, float)) or not 0 <= penalty < math.inf:
+            raise ValueError(f"ppo.cost_penalty = {penalty!r}: expected a finite number >= 0")
+        if penalty and self.lagrangian:
+            raise ValueError(
+                f"ppo.cost_penalty = {penalty} with ppo.lagrangian=true: PPO-Lagrangian learns its multiplier; "
+                "a fixed penalty needs ppo.lagrangian=false"
+            )
         if self.frames_per_batch % self.num_envs:
             raise ValueError(
                 f"ppo.frames_per_batch = {self.frames_per_batch} does not split over ppo.num_envs = {self.num_envs}"
@@ -306,7 +318,7 @@ def train_ppo(
     bar = tqdm(
         total=batches * config.frames_per_batch,
         initial=frames,
-        desc="ppo-lag" if config.lagrangian else "ppo",
+        desc="ppo-lag" if config.lagrangian else "ppo-penalty" if config.cost_penalty else "ppo",
         unit="frame",
         disable=not progress,
     )

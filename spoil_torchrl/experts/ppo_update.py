@@ -78,7 +78,9 @@ class PPOLearner(nn.Module):
                 {"params": self.cost_critic.parameters(), "lr": config.critic_lr},
             ]
         )
-        self.lagrange = nn.Parameter(torch.tensor(float(config.lagrange_init)))
+        # the multiplier: learned from lagrange_init (PPO-Lagrangian) or fixed at cost_penalty (0: plain PPO)
+        multiplier = config.lagrange_init if config.lagrangian else config.cost_penalty
+        self.lagrange = nn.Parameter(torch.tensor(float(multiplier)))
         self.lagrange_optim = torch.optim.Adam([self.lagrange], lr=config.lagrange_lr)
 
     def observe(self, observations: torch.Tensor) -> None:
@@ -124,8 +126,9 @@ def ppo_update(
     learner: PPOLearner, batch: TensorDict, config: PPOConfig, index: int, cost: float, *, batches: int = 1
 ) -> int:
     """One batch's update: the multiplier's Adam step on the batch's mean episode cost ``cost`` (skipped
-    without a finished episode), the advantages of the penalised objective, then ``epochs`` passes of clipped
-    PPO over minibatches (actor, critic and cost critic each clipped to ``max_grad_norm``). With
+    without a finished episode; never with a fixed ``config.cost_penalty``), the advantages of the penalised
+    objective, then ``epochs`` passes of clipped PPO over minibatches (actor, critic and cost critic each
+    clipped to ``max_grad_norm``). With
     ``config.target_kl``, the passes stop after the first whose end finds the estimated KL divergence of the
     policy from the batch's own, the mean of ``log pi_old(a|s) - log pi(a|s)`` over the batch's actions, above
     it. With ``config.lr_decay``, the actor's learning rate is ``actor_lr * (1 - index / batches)``. Returns
@@ -143,7 +146,7 @@ def ppo_update(
     advantage, cost_advantage = batch["advantage"], batch["cost_advantage"]
     if config.advantage_standardization == "separate":  # OmniSafe: each standardised, then combined
         advantage, cost_advantage = _standardized(advantage), _standardized(cost_advantage)
-    if config.lagrangian:
+    if config.lagrangian or config.cost_penalty:  # the penalised objective, lambda learned or fixed
         advantage = (advantage - lagrange * cost_advantage) / (1.0 + lagrange)
     batch["advantage"] = (
         _standardized(advantage) if config.advantage_standardization == "combined" else advantage
