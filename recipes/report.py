@@ -16,8 +16,9 @@ paper's order. Runs that did not finish (failed, interrupted, killed, still runn
 the reason. A seed found twice (unless ``--latest``: the newest run counts), or runs of one dataset made with
 different training budgets (the ``train`` section of the ``config.yaml`` beside each ``results.json``), stop
 the report with an error naming the runs. Each table names the software stack its runs were made on
-(``results.json``'s ``stack``), and the report warns when one dataset's runs come from several stacks or a
-run's data were made on another stack than the run (their simulators differ).
+(``results.json``'s ``stack``), and the report warns when one dataset's runs come from several stacks, a
+run's data were made on another stack than the run (their simulators differ), or a run was resumed on
+another machine than the one that started it (``resumed_elsewhere``).
 The plot puts normalised cost on x and normalised feasible return on y, one marker per algorithm with
 standard-error bars, the safe region (cost <= 1) shaded; the curves plot each metric against the training
 step (mean over seeds, standard error shaded); both from ``spoil_torchrl.eval.figures`` (one colour and
@@ -110,12 +111,23 @@ def run_stack(results: dict) -> str:
 
 def stack_warnings(runs: dict[tuple[str, str], list[dict]]) -> list[str]:
     """A line for each dataset whose runs come from more than one software stack, and for runs trained on data
-    made on another stack than their own: their numbers are not comparable (other physics)."""
+    made on another stack than their own: their numbers are not comparable (other physics). A line, too, for
+    each run whose parts ran on more than one machine (``results.json``'s ``resumed_elsewhere``): it continued
+    exactly from what it stored, but its arithmetic was done on different CPUs."""
     out = []
     by_dataset: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     for (dataset, _), group in runs.items():
         for results in group:
             by_dataset[dataset][run_stack(results)] += 1
+            if results.get("resumed_elsewhere"):
+                where = "; ".join(
+                    f"{part['stage']}{' from step ' + str(part['from_step']) if 'from_step' in part else ''} "
+                    f"on {part.get('host')} ({part.get('cpu')})"
+                    for part in results.get("ran_on", [])
+                )
+                out.append(
+                    f"{results['algo']} seed {results['seed']} on {dataset} was resumed elsewhere: {where}"
+                )
             data_stack = (results.get("data") or {}).get("stack")
             if data_stack is not None and results.get("stack") is not None:
                 if stack_label(data_stack) != stack_label(results["stack"]):

@@ -13,8 +13,9 @@ for every seed:
 
 1. Input: D_S, D_P, D_U and the initial states D_0, one TorchRL replay buffer each, states standardised with
    D_U's mean and standard deviation (``open_run``).
-2. Pre-train C_P and C_S, fit the kappa-quantile support cut, annotate D_U once (``pretrain``: the builder of
-   ``algo.name`` in ``spoil_torchrl.algorithms``; a baseline pre-trains what it needs, or nothing).
+2. Pre-train C_P and C_S, fit the kappa-quantile support cut, annotate D_U once (``pretrain``: the pre-training
+   stage of ``algo.name`` in ``spoil_torchrl.algorithms``; a baseline pre-trains what it needs, or nothing).
+   The run stores it, and a resumed run loads it instead of training again.
 3. Optimise (nu, lambda) and pi with ``torchrl.trainers.Trainer``, evaluating every ``train.eval_interval``
    steps in the real environment (``train_one``; ``train_seeds`` trains every seed's main stage at once in one
    vmapped, compiled update).
@@ -64,7 +65,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
         runs = [open_run(*seed, claim.start) for seed in claim.seeds]
         with recorded_failure(runs), matmul_precision(cfg.train.get("matmul_precision", "highest")):
             note_precision(runs)  # training's float32 products as configured; every rollout's are IEEE
-            # 2. Pre-train C_P and C_S, fit the support cut, annotate D_U (each seed from its own random stream)
+            # 2. Pre-train C_P and C_S, fit the support cut, annotate D_U (each seed from its own random stream;
+            # stored in the run, and loaded, not trained again, when it resumes)
             for seed_run in runs:
                 pretrain(seed_run)
             # 3.-4. Optimise (nu, lambda) and pi, evaluating as it goes; results.json with the aggregate

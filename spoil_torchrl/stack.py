@@ -31,6 +31,7 @@ __all__ = [
     "DEFAULT_STACK",
     "LEGACY_STACK",
     "STACK_PACKAGES",
+    "current_machine",
     "current_stack",
     "stack_differences",
     "stack_label",
@@ -60,6 +61,24 @@ def current_stack() -> dict[str, str | None]:
             stack[name.replace("-", "_")] = None
     stack["python"] = platform.python_version()
     return stack
+
+
+def current_machine() -> dict[str, str]:
+    """Where this process runs: the host's name and the CPU's model (``/proc/cpuinfo``'s ``model name`` on
+    Linux, else :func:`platform.processor`). Two machines with one stack may still round floating point
+    differently (another CPU takes other BLAS kernels), so a run records where each of its parts ran.
+
+    Examples:
+        >>> sorted(current_machine())
+        ['cpu', 'host']
+    """
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
+    except OSError:
+        pass
+    return {"host": platform.node(), "cpu": cpu or platform.processor() or platform.machine()}
 
 
 def stack_differences(recorded: Mapping | None, current: Mapping | None = None) -> list[str]:

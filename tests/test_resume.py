@@ -62,20 +62,78 @@ def _same_run(a: Path, b: Path) -> None:
         assert (b / log.relative_to(a)).read_text().count("\n") == log.read_text().count("\n"), log.name
 
 
-def test_a_run_killed_mid_training_resumes_bit_exactly(tmp_path, tiny_pc1_dataset, uninterrupted):
+def _no_discriminator_training(monkeypatch) -> list:
+    """Make every discriminator training of the DICE algorithms fail loudly; returns the calls it saw."""
+    from spoil_torchrl.algorithms import dice
+
+    calls = []
+
+    def trained_again(*args, **kwargs):
+        calls.append(args)
+        raise AssertionError("the resumed run trained its discriminators again")
+
+    monkeypatch.setattr(dice, "train_discriminators", trained_again)
+    return calls
+
+
+def test_a_run_killed_mid_training_resumes_bit_exactly(
+    tmp_path, tiny_pc1_dataset, uninterrupted, monkeypatch
+):
     from spoil_torchrl.runs.directory import run_status
 
     run_dir = tmp_path / "run"
     kill_when(tiny_pc1_dataset, run_dir, lambda d: evaluations(d) >= 2)
     assert run_status(run_dir) == "killed"
+    assert (run_dir / "checkpoints" / "pretraining.pt").is_file()  # stored before the main stage began
     # a plain restart refuses to overwrite it, with one clear line and no traceback
     proc = run_short(tiny_pc1_dataset, run_dir, ok=False)
     assert proc.returncode == 2 and "resume=true" in proc.stderr and "Traceback" not in proc.stderr
     # the report says why it leaves the run out
     report = run_command(["recipes/report.py", tmp_path, uninterrupted], real=True)  # spoil-report's process
     assert report.returncode == 0 and f"skipped {run_dir}: killed" in report.stderr
+    calls = _no_discriminator_training(monkeypatch)
+    run_short(tiny_pc1_dataset, run_dir, "resume=true")
+    assert calls == []  # the stored pre-training was loaded, not computed
+    _same_run(uninterrupted, run_dir)
+    results = json.loads((run_dir / "results.json").read_text())
+    assert [part["stage"] for part in results["ran_on"]] == ["pre-training", "main", "main"]
+    assert (
+        results["ran_on"][-1]["from_step"] == results["resumed_at"][-1] and "resumed_elsewhere" not in results
+    )
+
+
+def test_a_run_resumed_where_its_pretraining_would_differ_continues_from_the_stored_one(
+    tmp_path, tiny_pc1_dataset, uninterrupted, monkeypatch
+):
+    """As if resumed on another CPU: a discriminator initialised differently from now on and another machine.
+    The run continues from its stored pre-training, ends as the uninterrupted run and says where it ran; a run
+    without a stored pre-training (made before they were stored) computes it again and is refused."""
+    from spoil_torchrl.algorithms import base
+    from spoil_torchrl.runs import lifecycle
+
+    run_dir, legacy = tmp_path / "run", tmp_path / "legacy"
+    kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
+    shutil.copytree(run_dir, legacy)
+    (legacy / "checkpoints" / "pretraining.pt").unlink()
+    make_discriminator = base.make_discriminator
+
+    def perturbed(*args, **kwargs):
+        network = make_discriminator(*args, **kwargs)
+        with torch.no_grad():
+            next(network.parameters()).add_(1e-3)
+        return network
+
+    monkeypatch.setattr(base, "make_discriminator", perturbed)
+    monkeypatch.setattr(lifecycle, "current_machine", lambda: {"host": "elsewhere", "cpu": "another CPU"})
     run_short(tiny_pc1_dataset, run_dir, "resume=true")
     _same_run(uninterrupted, run_dir)
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["resumed_elsewhere"] is True
+    step = results["resumed_at"][-1]
+    where = {k: v for k, v in results["ran_on"][-1].items() if k != "setup_seconds"}
+    assert where == {"stage": "main", "from_step": step, "host": "elsewhere", "cpu": "another CPU"}
+    proc = run_short(tiny_pc1_dataset, legacy, "resume=true", ok=False)
+    assert proc.returncode == 2 and "did not reproduce" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_a_run_killed_mid_evaluation_resumes_bit_exactly(tmp_path, tiny_pc1_dataset, uninterrupted):
@@ -177,6 +235,34 @@ def test_resume_refuses_other_settings_and_a_damaged_checkpoint(tmp_path, tiny_p
     checkpoint.write_bytes(bytes(data))
     proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
     assert proc.returncode == 2 and str(checkpoint) in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_resume_refuses_a_damaged_or_foreign_stored_pretraining_and_changes_nothing(
+    tmp_path, tiny_pc1_dataset
+):
+    from spoil_torchrl.runs.checkpoint import load_checkpoint, save_checkpoint
+
+    run_dir = tmp_path / "run"
+    kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
+    stored = run_dir / "checkpoints" / "pretraining.pt"
+    good = stored.read_bytes()
+    state = load_checkpoint(stored)
+    damaged = {
+        "truncated": good[: len(good) // 2],
+        "other settings": state | {"config_yaml": state["config_yaml"] + "another_setting: 1\n"},
+        "other data": state | {"data_fingerprint": "0" * 64},
+    }
+    for case, content in damaged.items():
+        if isinstance(content, bytes):
+            stored.write_bytes(content)
+        else:
+            save_checkpoint(stored, content)
+        before = files(run_dir)
+        proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
+        assert proc.returncode == 2 and str(stored) in proc.stderr, (case, proc.stderr[-2000:])
+        assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, case
+        assert files(run_dir) == before, case
+    assert "other data" in proc.stderr
 
 
 def test_commands_refused_on_a_finished_run_leave_it_byte_identical(

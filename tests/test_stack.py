@@ -105,3 +105,14 @@ def test_the_report_names_each_tables_stack_and_warns_when_they_mix():
     crossed = {("d", "bc"): [results(0, here, data_stack=other_stack())]}
     (warning,) = stack_warnings(crossed)
     assert "trained on data made on" in warning
+    parts = [
+        {"stage": "pre-training", "host": "a", "cpu": "EPYC"},
+        {"stage": "main", "from_step": 0, "host": "a", "cpu": "EPYC"},
+        {"stage": "main", "from_step": 5000, "host": "b", "cpu": "Xeon"},
+    ]
+    moved = {("d", "bc"): [dict(results(0, here), ran_on=parts, resumed_elsewhere=True), results(1, here)]}
+    (warning,) = stack_warnings(moved)
+    assert warning == (
+        "bc seed 0 on d was resumed elsewhere: pre-training on a (EPYC); main from step 0 on a (EPYC); "
+        "main from step 5000 on b (Xeon)"
+    )

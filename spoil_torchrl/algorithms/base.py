@@ -1,12 +1,14 @@
-"""What every algorithm builder shares: the run's :class:`BuildContext`, the :class:`PolicyTraining` it returns,
-and the pieces several builders assemble from (the actor, Adam, a weighted-BC main stage, a DICE main stage,
-the PU discriminators of stage 1 and the support cut of Eq. 13)."""
+"""What every algorithm shares: the run's :class:`BuildContext`, the two stages an :class:`Algorithm` is made
+of (a pre-training that returns an immutable :class:`Pretraining`, a main stage that builds the
+:class:`PolicyTraining` from it), and the pieces several of them assemble from (the actor, Adam, a weighted-BC
+main stage, a DICE main stage, the PU discriminators of stage 1 and the support cut of Eq. 13)."""
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import torch
@@ -98,6 +100,111 @@ class PolicyTraining:
                 yield with_observation_norm(loss.actor_network, self.observation_norm)
 
 
+def _read_only(mapping: Mapping) -> Mapping:
+    return MappingProxyType({k: _read_only(v) if isinstance(v, Mapping) else v for k, v in mapping.items()})
+
+
+@dataclass(frozen=True)
+class Pretraining:
+    """What an algorithm's pre-training stage returns (stage 1 of Algorithm 1), and all the main stage reads of
+    it: a value a run can store and a resumed run load instead of training the discriminators again.
+
+    Attributes:
+        annotations: role -> key -> the values the stage wrote into that role's stored transitions, one row per
+            transition in storage order (SpoilDICE: ``log_ratio_performant`` and ``safe_support`` on D_U).
+        diagnostics: the numbers the stage measured (support share, threshold, SafeDICE's alpha ...); the main
+            stage may read them.
+        networks: name -> state dict of each frozen network the stage trained (C_P, C_S), for inspection; the
+            main stage reads only the annotations they made.
+
+    The mappings are read-only. An algorithm without a pre-training returns :data:`NO_PRETRAINING`.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> episodes = TensorDict({"observation": torch.arange(4.0).unsqueeze(-1),
+        ...                        "episode": torch.tensor([0, 0, 1, 1]),
+        ...                        "is_init": torch.tensor([[True], [False], [True], [False]])}, [4])
+        >>> buffers = DualDemoBuffers(episodes, {"unlabeled": [0, 1]}, batch_size=2)
+        >>> buffers.annotate("unlabeled", "score", lambda td: 2 * td["observation"])
+        >>> stage = Pretraining.of(buffers, {"unlabeled": ["score"]}, {"mean_score": 3.0})
+        >>> fresh = DualDemoBuffers(episodes.exclude("score"), {"unlabeled": [0, 1]}, batch_size=2)
+        >>> stage.apply(fresh)  # a resumed run: the stored annotations, no training
+        >>> fresh["unlabeled"].storage[:]["score"].squeeze(-1).tolist()
+        [0.0, 2.0, 4.0, 6.0]
+    """
+
+    annotations: Mapping[str, Mapping[str, torch.Tensor]] = field(default_factory=dict)
+    diagnostics: Mapping[str, float] = field(default_factory=dict)
+    networks: Mapping[str, Mapping[str, torch.Tensor]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("annotations", "diagnostics", "networks"):
+            object.__setattr__(self, name, _read_only(getattr(self, name)))
+
+    @classmethod
+    def of(
+        cls,
+        buffers: DualDemoBuffers,
+        keys: Mapping[str, Sequence[str]],
+        diagnostics: Mapping[str, float],
+        networks: Mapping[str, torch.nn.Module] | None = None,
+    ) -> Pretraining:
+        """The stage's value once it has annotated ``buffers``: a copy of each role's annotated ``keys``, the
+        ``diagnostics`` and the state dicts of ``networks``."""
+        annotations = {
+            role: {key: buffers[role].storage[:][key].clone() for key in role_keys}
+            for role, role_keys in keys.items()
+        }
+        states = {
+            name: {k: v.detach().clone() for k, v in module.state_dict().items()}
+            for name, module in (networks or {}).items()
+        }
+        return cls(annotations, dict(diagnostics), states)
+
+    def apply(self, buffers: DualDemoBuffers) -> None:
+        """Write the stored annotations into ``buffers`` (a resumed run's, loaded from the same data)."""
+        for role, values in self.annotations.items():
+            for key, value in values.items():
+                buffers.set_annotation(role, key, value)
+
+    def as_state(self) -> dict:
+        """Plain dicts of tensors and numbers (what ``torch.save(weights_only=True)`` stores)."""
+        plain = lambda m: {k: plain(v) if isinstance(v, Mapping) else v for k, v in m.items()}  # noqa: E731
+        return {name: plain(getattr(self, name)) for name in ("annotations", "diagnostics", "networks")}
+
+
+#: The value of an algorithm that pre-trains nothing (BC, DWBC-S, COptiDICE).
+NO_PRETRAINING = Pretraining()
+
+
+def no_pretraining(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """The pre-training stage of an algorithm that has none."""
+    return NO_PRETRAINING
+
+
+@dataclass(frozen=True)
+class Algorithm:
+    """An algorithm of the main recipe as its two stages.
+
+    Attributes:
+        pretrain: ``(cfg, context) -> Pretraining``: everything before the policy is trained (SpoilDICE: C_P,
+            C_S, the support cut, D_U annotated once); it writes its annotations into ``context.buffers`` and
+            returns them with its diagnostics.
+        main: ``(cfg, context, pretraining) -> PolicyTraining``: the main stage's losses and optimisers, built
+            on buffers that hold ``pretraining``'s annotations.
+
+    Calling the algorithm runs both, as a fresh run does: ``algorithm(cfg, context)``.
+    """
+
+    pretrain: Callable[[Mapping[str, Any], BuildContext], Pretraining]
+    main: Callable[[Mapping[str, Any], BuildContext, Pretraining], PolicyTraining]
+
+    def __call__(self, cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
+        return self.main(cfg, context, self.pretrain(cfg, context))
+
+
 def actor(cfg: Mapping[str, Any], context: BuildContext) -> ProbabilisticActor:
     """The policy network of ``cfg`` (``hidden_cells``, ``distribution``) for the context's sizes."""
     return make_actor(
@@ -185,3 +292,9 @@ def fit_support(
 ) -> SupportEstimator:
     """Eq. (13) on ``role``'s discriminator: the kappa-quantile cut of its log-ratio over ``role``'s data."""
     return SupportEstimator(loss.frozen_network(), kappa=kappa, out_key=out_key).fit(buffers[role].storage[:])
+
+
+def frozen_networks(discriminators: Mapping[str, PUDiscriminatorLoss]) -> dict[str, torch.nn.Module]:
+    """The frozen networks of trained discriminators (role -> loss), named ``C_<role>``: what a
+    :class:`Pretraining` keeps of them."""
+    return {f"C_{role}": loss.frozen_network() for role, loss in discriminators.items()}

@@ -1,6 +1,8 @@
 """The DICE algorithms: SpoilDICE (Algorithm 1) and the DICE baselines of the paper's section 5 (DemoDICE-S,
-DemoDICE-U, SafeDICE, COptiDICE), each a builder ``build_<name>(cfg, context) -> PolicyTraining`` whose main
-stage is a dual (:class:`~spoil_torchrl.objectives.dice.DICELoss`) followed by weighted BC on its weights."""
+DemoDICE-U, SafeDICE, COptiDICE), each an :class:`~spoil_torchrl.algorithms.base.Algorithm`: a pre-training
+``pretrain_<name>(cfg, context) -> Pretraining`` (none for COptiDICE) and a main stage
+``build_<name>(cfg, context, pretraining) -> PolicyTraining``, a dual
+(:class:`~spoil_torchrl.objectives.dice.DICELoss`) followed by weighted BC on its weights."""
 
 from __future__ import annotations
 
@@ -12,9 +14,11 @@ import torch
 from spoil_torchrl.algorithms.base import (
     BuildContext,
     PolicyTraining,
+    Pretraining,
     adam,
     dice_stage,
     fit_support,
+    frozen_networks,
     train_discriminators,
 )
 from spoil_torchrl.modules import make_value_network
@@ -33,23 +37,32 @@ def _value_network(cfg: Mapping[str, Any], context: BuildContext, **kwargs):
     return make_value_network(context.observation_dim, hidden_cells=tuple(cfg["hidden_cells"]), **kwargs)
 
 
-def build_spoildice(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
-    """SpoilDICE (Algorithm 1). Stage 1: C_P and C_S (Eq. 16-17), log r_P (Eq. 18), the kappa-quantile support
-    cut fitted on D_S (Eq. 13), and D_U annotated once with ``log_ratio_performant`` and ``safe_support``.
-    Main stage: (nu, lambda) by Eq. (19) and pi by weighted BC on D_U (Eq. 20)."""
+def pretrain_spoildice(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """SpoilDICE's stage 1 (Algorithm 1): C_P and C_S (Eq. 16-17), log r_P (Eq. 18), the kappa-quantile support
+    cut fitted on D_S (Eq. 13), and D_U annotated once with ``log_ratio_performant`` and ``safe_support`` (D_P
+    with ``safe_support`` too, read by the diagnostics only: the share of D_P kept)."""
     buffers = context.buffers
     discriminators = train_discriminators(cfg["discriminator"], context)
     ratio_p = discriminators["performant"].log_ratio_module("log_ratio_performant")
     support = fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
     buffers.annotate("unlabeled", ratio_p)
     buffers.annotate("unlabeled", support)
-    buffers.annotate("performant", support)  # read by the diagnostics only (the share of D_P kept)
+    buffers.annotate("performant", support)
     unlabeled = buffers["unlabeled"].storage[:]
     diagnostics = {
         "support_share_unlabeled": float(unlabeled["safe_support"].float().mean()),
         "support_threshold": float(support.threshold),
         "log_ratio_performant_mean": float(unlabeled["log_ratio_performant"].float().mean()),
     }
+    keys = {"unlabeled": ["log_ratio_performant", "safe_support"], "performant": ["safe_support"]}
+    return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
+
+
+def build_spoildice(
+    cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining
+) -> PolicyTraining:
+    """SpoilDICE's main stage (Algorithm 1): (nu, lambda) by Eq. (19) and pi by weighted BC on D_U (Eq. 20),
+    on D_U annotated by :func:`pretrain_spoildice`."""
     dice = SpoilDICELoss(
         _value_network(cfg, context),
         gamma=float(cfg["gamma"]),
@@ -60,16 +73,16 @@ def build_spoildice(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTrai
         adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
         adam([dice.lagrange], cfg["lagrange_lr"]),
     ]
-    return dice_stage(cfg, context, dice, dual, "unlabeled", diagnostics)
+    return dice_stage(cfg, context, dice, dual, "unlabeled", dict(pretraining.diagnostics))
 
 
 def _demodice_stage(
-    cfg: Mapping[str, Any], context: BuildContext, *, role: str, reward_key: str, diagnostics: dict
+    cfg: Mapping[str, Any], context: BuildContext, *, role: str, reward_key: str, diagnostics: Mapping
 ) -> PolicyTraining:
     """DemoDICE's main stage on ``role``'s samples with the annotated reward ``reward_key``: nu by DemoDICE's
     dual and pi by weighted BC on the role (see :class:`DemoDICELoss`)."""
     reward = context.buffers[role].storage[:][reward_key].float()
-    diagnostics = diagnostics | {
+    diagnostics = dict(diagnostics) | {
         f"{reward_key}_mean": float(reward.mean()),
         f"{reward_key}_std": float(reward.std()),
     }
@@ -85,24 +98,32 @@ def _demodice_stage(
     return dice_stage(cfg, context, dice, dual, role, diagnostics)
 
 
-def build_demodice_s(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
-    """DemoDICE-S (paper section 5): min KL(d||d_P) + alpha KL(d||d_S) with D_S as the samples. C_P is trained
-    against D_S, so its logit is the reward log d_P/d_S; D_S is annotated with ``log_ratio_performant_safe``
-    and the policy is weighted BC on D_S."""
+def pretrain_demodice_s(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """DemoDICE-S's pre-training (paper section 5): C_P trained against D_S, so its logit is the reward
+    log d_P/d_S; D_S annotated with it as ``log_ratio_performant_safe``."""
     discriminators = train_discriminators(
         cfg["discriminator"], context, positives=("performant",), against="safe"
     )
     context.buffers.annotate(
         "safe", discriminators["performant"].log_ratio_module("log_ratio_performant_safe")
     )
-    return _demodice_stage(cfg, context, role="safe", reward_key="log_ratio_performant_safe", diagnostics={})
+    keys = {"safe": ["log_ratio_performant_safe"]}
+    return Pretraining.of(context.buffers, keys, {}, frozen_networks(discriminators))
 
 
-def build_demodice_u(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
-    """DemoDICE-U (paper section 5: "variants of DemoDICE that regularize d toward d_S, differing in the choice
-    of importance sampling distribution"): DemoDICE-S's objective min KL(d||d_P) + alpha KL(d||d_S), with D_U
-    as the samples. With w = d/d_U it is DemoDICE's dual on D_U with the reward log r_P + alpha log r_S
-    (``demodice_reward``), from C_P and C_S trained against D_U (Eq. 16-18); the policy is weighted BC on D_U."""
+def build_demodice_s(
+    cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining
+) -> PolicyTraining:
+    """DemoDICE-S's main stage: min KL(d||d_P) + alpha KL(d||d_S) with D_S as the samples, the reward from
+    :func:`pretrain_demodice_s`, and the policy weighted BC on D_S."""
+    return _demodice_stage(
+        cfg, context, role="safe", reward_key="log_ratio_performant_safe", diagnostics=pretraining.diagnostics
+    )
+
+
+def pretrain_demodice_u(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """DemoDICE-U's pre-training: C_P and C_S trained against D_U (Eq. 16-18), D_U annotated with their
+    log-ratios and the reward log r_P + alpha log r_S (``demodice_reward``)."""
     buffers = context.buffers
     discriminators = train_discriminators(cfg["discriminator"], context)
     buffers.annotate("unlabeled", discriminators["performant"].log_ratio_module("log_ratio_performant"))
@@ -118,17 +139,27 @@ def build_demodice_u(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTra
         "log_ratio_safe_mean": float(log_ratio_safe.mean()),
         "log_ratio_safe_std": float(log_ratio_safe.std()),
     }
+    keys = {"unlabeled": ["log_ratio_performant", "log_ratio_safe", "demodice_reward"]}
+    return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
+
+
+def build_demodice_u(
+    cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining
+) -> PolicyTraining:
+    """DemoDICE-U (paper section 5: "variants of DemoDICE that regularize d toward d_S, differing in the choice
+    of importance sampling distribution"): DemoDICE-S's objective min KL(d||d_P) + alpha KL(d||d_S), with D_U
+    as the samples. With w = d/d_U it is DemoDICE's dual on D_U with the reward of :func:`pretrain_demodice_u`;
+    the policy is weighted BC on D_U."""
     return _demodice_stage(
-        cfg, context, role="unlabeled", reward_key="demodice_reward", diagnostics=diagnostics
+        cfg, context, role="unlabeled", reward_key="demodice_reward", diagnostics=pretraining.diagnostics
     )
 
 
-def build_safedice(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
-    """SafeDICE (Jang et al., 2023; paper section 5 with the unsafe episodes as non-preferred D_N). Stage 1: the
-    discriminator of D_N against D_U (Eq. 16 with D_N as positives), frozen; D_U annotated once with its logit
-    ``log_ratio_nonpreferred``; alpha = ``cfg["alpha"]``, or :func:`safedice_auto_alpha` of D over all of D_U for
-    ``"auto"``; with ``cfg["standardize_reward"]`` the reward is standardised by its mean and standard deviation
-    over D_U, as the reference code does. Main stage: nu by SafeDICE's dual and pi by weighted BC on D_U."""
+def pretrain_safedice(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """SafeDICE's stage 1 (Jang et al., 2023; paper section 5 with the unsafe episodes as non-preferred D_N):
+    the discriminator of D_N against D_U (Eq. 16 with D_N as positives), frozen; D_U annotated once with its
+    logit ``log_ratio_nonpreferred``; alpha = ``cfg["alpha"]``, or :func:`safedice_auto_alpha` of D over all of
+    D_U for ``"auto"``; the reward's mean and standard deviation over D_U."""
     buffers = context.buffers
     if "nonpreferred" not in buffers.roles:
         raise ValueError(
@@ -142,19 +173,28 @@ def build_safedice(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTrain
     )
     alpha = safedice_auto_alpha(probability) if str(cfg["alpha"]) == "auto" else float(cfg["alpha"])
     reward = safedice_reward(probability, alpha)
-    mean, std = float(reward.mean()), float(reward.std(unbiased=False))  # NumPy's std, as the reference
-    reward_mean, reward_std = 0.0, 1.0
-    if bool(cfg.get("standardize_reward", False)):
-        reward_mean, reward_std = mean, (std if std > 0 else 1.0)
     diagnostics = {
         "alpha": alpha,
-        "reward_mean": mean,
-        "reward_std": std,
+        "reward_mean": float(reward.mean()),
+        "reward_std": float(reward.std(unbiased=False)),  # NumPy's std, as the reference
         "nonpreferred_probability_mean": float(probability.mean()),
     }
+    keys = {"unlabeled": ["log_ratio_nonpreferred"]}
+    return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
+
+
+def build_safedice(cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining) -> PolicyTraining:
+    """SafeDICE's main stage: nu by SafeDICE's dual with the alpha of :func:`pretrain_safedice` and pi by
+    weighted BC on D_U; with ``cfg["standardize_reward"]`` the reward is standardised by its mean and standard
+    deviation over D_U, as the reference code does."""
+    diagnostics = dict(pretraining.diagnostics)
+    reward_mean, reward_std = 0.0, 1.0
+    if bool(cfg.get("standardize_reward", False)):
+        std = diagnostics["reward_std"]
+        reward_mean, reward_std = diagnostics["reward_mean"], (std if std > 0 else 1.0)
     dice = SafeDICELoss(
         _value_network(cfg, context),
-        alpha=alpha,
+        alpha=diagnostics["alpha"],
         gamma=float(cfg["gamma"]),
         gradient_penalty=float(cfg["nu_gradient_penalty"]),
         reward_mean=reward_mean,
@@ -164,10 +204,13 @@ def build_safedice(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTrain
     return dice_stage(cfg, context, dice, dual, "unlabeled", diagnostics)
 
 
-def build_coptidice(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
+def build_coptidice(
+    cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining
+) -> PolicyTraining:
     """COptiDICE (Lee et al., 2022; paper section 5 with the dataset's true reward and cost on D_U). No
-    pre-training; main stage: (nu, chi, tau, lambda) by :class:`COptiDICELoss` and pi by weighted BC on D_U. The
-    per-step cost limit is ``cfg["cost_limit"]`` when set, else :func:`per_step_cost_limit` of the context's
+    pre-training (``pretraining`` is :data:`~spoil_torchrl.algorithms.base.NO_PRETRAINING`); main stage: (nu,
+    chi, tau, lambda) by :class:`COptiDICELoss` and pi by weighted BC on D_U. The per-step cost limit is
+    ``cfg["cost_limit"]`` when set, else :func:`per_step_cost_limit` of the context's
     ``constraint`` (the episode threshold over the episode length; the main recipe passes the dataset's
     threshold and the task's time limit)."""
     gamma = float(cfg["gamma"])

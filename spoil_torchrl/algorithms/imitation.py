@@ -1,5 +1,7 @@
-"""The behaviour-cloning baselines (paper section 5): BC, FBC, JFBC and DWBC-S, each a builder
-``build_<name>(cfg, context) -> PolicyTraining``."""
+"""The behaviour-cloning baselines (paper section 5): BC, FBC, JFBC and DWBC-S, each an
+:class:`~spoil_torchrl.algorithms.base.Algorithm`: a pre-training ``pretrain_<name>(cfg, context) -> Pretraining``
+(FBC's and JFBC's support cuts; none for BC and DWBC-S) and a main stage
+``build_<name>(cfg, context, pretraining) -> PolicyTraining``."""
 
 from __future__ import annotations
 
@@ -9,9 +11,11 @@ from typing import Any
 from spoil_torchrl.algorithms.base import (
     BuildContext,
     PolicyTraining,
+    Pretraining,
     actor,
     adam,
     fit_support,
+    frozen_networks,
     train_discriminators,
     weighted_bc_stage,
 )
@@ -22,14 +26,14 @@ from spoil_torchrl.objectives import DWBCLoss
 from spoil_torchrl.trainers.offline import MultiLossStepper, StepEvery
 
 
-def build_bc(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
+def build_bc(cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining) -> PolicyTraining:
     """BC: maximum likelihood on D_P (``cfg["role"]``, default ``"performant"``), no pre-training."""
     return weighted_bc_stage(cfg, context, cfg.get("role", "performant"), None, {})
 
 
-def build_fbc(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
-    """Filtered BC (paper section 5, Table B): NLL on D_P weighted by the estimated safe support 1_S (C_S
-    against D_U, the kappa cut on D_S), i.e. BC on the performant transitions inside the safe support.
+def pretrain_fbc(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """Filtered BC's pre-training (paper section 5, Table B): the estimated safe support 1_S (C_S against D_U,
+    the kappa cut on D_S) annotated on D_P as ``safe_support``.
 
     ``cfg["support"] = "oracle"`` (``+algo.support=oracle``; default ``"estimated"``) is an ablation that no
     method can run on real data: the weight is 1 on D_P's trajectories whose true episode cost is within the
@@ -39,6 +43,7 @@ def build_fbc(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
     support = cfg.get("support", "estimated")
     if support not in ("estimated", "oracle"):
         raise SettingsError(f"algo.support = {support!r}: expected estimated or oracle")
+    networks = {}
     if support == "oracle":
         if context.constraint is None:
             raise ValueError(
@@ -59,13 +64,21 @@ def build_fbc(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
         discriminators = train_discriminators(cfg["discriminator"], context, positives=("safe",))
         support = fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
         buffers.annotate("performant", support)
+        networks = frozen_networks(discriminators)
     share = float(buffers["performant"].storage[:]["safe_support"].float().mean())
-    return weighted_bc_stage(cfg, context, "performant", "safe_support", {"support_share_performant": share})
+    diagnostics = {"support_share_performant": share}
+    return Pretraining.of(buffers, {"performant": ["safe_support"]}, diagnostics, networks)
 
 
-def build_jfbc(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
-    """Joint filtered BC (paper section 5): NLL on D_U weighted by 1_S * 1_P, both kappa cuts (Eq. 13) of
-    discriminators trained against D_U (C_S on D_S, C_P on D_P)."""
+def build_fbc(cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining) -> PolicyTraining:
+    """Filtered BC's main stage: NLL on D_P weighted by the safe support of :func:`pretrain_fbc`, i.e. BC on the
+    performant transitions inside the safe support."""
+    return weighted_bc_stage(cfg, context, "performant", "safe_support", dict(pretraining.diagnostics))
+
+
+def pretrain_jfbc(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """Joint filtered BC's pre-training (paper section 5): both kappa cuts (Eq. 13) of discriminators trained
+    against D_U (C_S on D_S, C_P on D_P), and D_U annotated with their product ``jfbc_weight`` = 1_S * 1_P."""
     buffers = context.buffers
     discriminators = train_discriminators(cfg["discriminator"], context)
     kappa = float(cfg["kappa"])
@@ -81,10 +94,16 @@ def build_jfbc(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
         "performant_share_unlabeled": float(unlabeled["performant_support"].float().mean()),
         "jfbc_share_unlabeled": float(unlabeled["jfbc_weight"].float().mean()),
     }
-    return weighted_bc_stage(cfg, context, "unlabeled", "jfbc_weight", diagnostics)
+    keys = {"unlabeled": ["safe_support", "performant_support", "jfbc_weight"]}
+    return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
 
 
-def build_dwbc_s(cfg: Mapping[str, Any], context: BuildContext) -> PolicyTraining:
+def build_jfbc(cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining) -> PolicyTraining:
+    """Joint filtered BC's main stage: NLL on D_U weighted by :func:`pretrain_jfbc`'s ``jfbc_weight``."""
+    return weighted_bc_stage(cfg, context, "unlabeled", "jfbc_weight", dict(pretraining.diagnostics))
+
+
+def build_dwbc_s(cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining) -> PolicyTraining:
     """DWBC-S (paper section 5; Xu et al., 2022): DWBC with ``cfg["expert"]`` (D_P) as its expert data and
     ``cfg["unlabeled"]`` (D_S) as its unlabeled data, "recovering performant behaviours from safe demonstrations"
     (see :class:`DWBCLoss`). No pre-training: the discriminator D(s, a, log pi) and the policy are trained jointly

@@ -14,7 +14,7 @@ from torchrl.data.replay_buffers import RandomSampler
 from torchrl.data.replay_buffers.storages import TensorStorage
 
 from spoil_torchrl.data.episodes import select_episodes
-from spoil_torchrl.objectives.annotate import annotate
+from spoil_torchrl.objectives.annotate import annotate, stored_tensordict, write_rows
 
 
 def _role_data(episodes: TensorDict, ids: torch.Tensor) -> TensorDict:
@@ -154,6 +154,15 @@ class DualDemoBuffers:
                 raise TypeError("annotate(role, key, fn) needs fn")
             module = _KeyFunction(module, fn, self.buffers[role].storage)
         annotate(self.buffers[role], module, chunk_size=chunk_size)
+
+    def set_annotation(self, role: str, key: str, values: torch.Tensor) -> None:
+        """Write ``values`` (one row per stored transition of ``role``, in storage order) as ``key`` of the
+        role's storage: what :meth:`annotate` wrote once, stored and written back (a resumed run's stored
+        pre-training)."""
+        td, n = stored_tensordict(self.buffers[role])
+        if values.shape[0] != n:
+            raise ValueError(f"{key!r} has {values.shape[0]} rows, but role {role!r} stores {n} transitions")
+        write_rows(td, key, 0, values)
 
 
 class _KeyFunction(TensorDictModuleBase):

@@ -10,7 +10,7 @@ from torchrl.data.replay_buffers.storages import TensorStorage
 from tqdm.auto import tqdm
 
 
-def _stored_tensordict(data: TensorDictBase | TensorStorage | ReplayBuffer) -> tuple[TensorDictBase, int]:
+def stored_tensordict(data: TensorDictBase | TensorStorage | ReplayBuffer) -> tuple[TensorDictBase, int]:
     """The tensordict that holds the rows of ``data`` and how many rows are filled."""
     if isinstance(data, ReplayBuffer):
         data = data.storage
@@ -66,7 +66,7 @@ def annotate(
     """
     if chunk_size <= 0:
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
-    td, n = _stored_tensordict(data)
+    td, n = stored_tensordict(data)
     missing = [k for k in module.in_keys if k not in td.keys(include_nested=True)]
     if missing:
         raise KeyError(f"the stored data has no {missing}; it has {sorted(map(str, td.keys(True, True)))}")
@@ -78,16 +78,22 @@ def annotate(
         chunk = chunk.to(device) if device is not None else chunk.clone()
         out = module(chunk)
         for key in module.out_keys:
-            value = out.get(key).to(td.device) if td.device is not None else out.get(key).cpu()
-            if key not in td.keys(include_nested=True):
-                full = torch.zeros((td.shape[0], *value.shape[1:]), dtype=value.dtype, device=value.device)
-                if td.is_locked:
-                    td.unlock_()
-                    td.set(key, full)
-                    td.lock_()
-                else:
-                    td.set(key, full)
-                if td.is_memmap():
-                    td.get(key).copy_(full)
-            td.get(key)[start:stop] = value
+            write_rows(td, key, start, out.get(key))
     return td
+
+
+def write_rows(td: TensorDictBase, key, start: int, value: torch.Tensor) -> None:
+    """Write ``value`` into rows ``start:start + len(value)`` of ``td[key]`` in place, creating the key (zeros
+    elsewhere) if ``td`` has none; ``td`` may be locked or memory-mapped."""
+    value = value.to(td.device) if td.device is not None else value.cpu()
+    if key not in td.keys(include_nested=True):
+        full = torch.zeros((td.shape[0], *value.shape[1:]), dtype=value.dtype, device=value.device)
+        if td.is_locked:
+            td.unlock_()
+            td.set(key, full)
+            td.lock_()
+        else:
+            td.set(key, full)
+        if td.is_memmap():
+            td.get(key).copy_(full)
+    td.get(key)[start : start + value.shape[0]] = value

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from spoil_torchrl.algorithms import ALGORITHMS, BuildContext, EpisodeConstraint
+from spoil_torchrl.algorithms import ALGORITHMS, Algorithm, BuildContext, EpisodeConstraint
 from spoil_torchrl.data import (
     DualDemoBuffers,
     fit_observation_normalizer,
@@ -37,12 +38,21 @@ from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint
 from spoil_torchrl.runs.directory import (
     CHECKPOINT_NAME,
+    LOCK_NAME,
     RunDirError,
     claim_run_dir,
     release_run_dir,
     write_hydra_record,
 )
-from spoil_torchrl.runs.results import experiment_cell, settings_yaml, write_json
+from spoil_torchrl.runs.pretraining import (
+    PRETRAINING_NAME,
+    StoredPretrainingRefused,
+    check_same_data,
+    data_fingerprint,
+    load_pretraining,
+    save_pretraining,
+)
+from spoil_torchrl.runs.results import experiment_cell, note_where, settings_yaml, write_json
 from spoil_torchrl.runs.resume import (
     check_resumable,
     finished_already,
@@ -52,7 +62,7 @@ from spoil_torchrl.runs.resume import (
 from spoil_torchrl.runs.seed_run import SeedRun, common_checkpoints, performant_support
 from spoil_torchrl.runs.settings import SettingsError, check_settings
 from spoil_torchrl.runs.tracking import check_logger_available, make_logger
-from spoil_torchrl.stack import current_stack
+from spoil_torchrl.stack import current_machine, current_stack
 from spoil_torchrl.tasks import get_env_task
 
 
@@ -113,7 +123,10 @@ def claim_runs(cfg: DictConfig, run_dir: Path) -> Iterator[Claim]:
     def same_settings(resuming: bool) -> None:  # a refused resume writes nothing into the run directory
         if resuming and not seeds:
             check_resumable(load_checkpoint(run_dir / CHECKPOINT_NAME), settings_yaml(cfg), run_dir)
+            if (run_dir / PRETRAINING_NAME).is_file():  # readable, of this algorithm and these settings
+                load_pretraining(run_dir, settings_yaml(cfg), algo=cfg.algo.name)
 
+    stale_lock = _file_state(run_dir / LOCK_NAME)  # a killed run's lock, put back if the resume is refused
     resuming = claim_run_dir(run_dir, resume="auto" if seeds and resume else resume, check=same_settings)
     if not resuming:
         write_hydra_record(run_dir, cfg)
@@ -141,10 +154,26 @@ def claim_runs(cfg: DictConfig, run_dir: Path) -> Iterator[Claim]:
             vectorised=True,
             start=start,
         )
+    except StoredPretrainingRefused:  # refused before the run wrote anything: leave the directory as it was
+        release_run_dir(run_dir)
+        _restore_file(run_dir / LOCK_NAME, stale_lock)
+        raise
     finally:
         for seed_dir in claimed:
             release_run_dir(seed_dir)
         release_run_dir(run_dir)
+
+
+def _file_state(path: Path) -> tuple[bytes, int] | None:
+    """A file's bytes and modification time (``None`` when there is none)."""
+    return (path.read_bytes(), path.stat().st_mtime_ns) if path.is_file() else None
+
+
+def _restore_file(path: Path, state: tuple[bytes, int] | None) -> None:
+    """Put back what :func:`_file_state` read (nothing, if there was no file)."""
+    if state is not None:
+        path.write_bytes(state[0])
+        os.utime(path, ns=(state[1], state[1]))
 
 
 def _probe_checkpoint_folder(run_dir: Path) -> None:
@@ -160,19 +189,20 @@ def _probe_checkpoint_folder(run_dir: Path) -> None:
 
 def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: float) -> SeedRun:
     """Input of Algorithm 1 for one seed: D_S, D_P, D_U and D_0 in their buffers, the evaluator, the logger, and
-    ``results.json`` (or, resuming from ``checkpoint``, its state and results)."""
+    ``results.json`` (or, resuming from ``checkpoint``, its state and results, and the run's stored pre-training
+    written back into the buffers: :mod:`spoil_torchrl.runs.pretraining`). A resume that is refused (other
+    settings, a damaged file, other data) changes nothing in the run directory."""
     torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))
     config_yaml = settings_yaml(cfg)
-    state = None
+    state, stored = None, None
     if checkpoint is not None:  # the checkpoint of an evaluation, made with the same settings
         state = load_checkpoint(checkpoint)
         check_resumable(state, config_yaml, run_dir)
-    (run_dir / "config.yaml").write_text(config_yaml)
+        if (run_dir / PRETRAINING_NAME).is_file():  # else a run from before pre-trainings were stored
+            stored = load_pretraining(run_dir, config_yaml, algo=cfg.algo.name)
     task = get_env_task(cfg.task.env_id)
     train = cfg.train
-    if train.checkpoint:
-        _probe_checkpoint_folder(run_dir)
 
     # Input: D_S, D_P, D_U (episode ids of one dataset) and the initial states D_0.
     # (an algorithm that needs another role, e.g. SafeDICE's non-preferred D_N, lists it in algo.extra_roles)
@@ -191,6 +221,12 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
     )
     episodes = data.episodes if norm is None else standardize_observations(data.episodes, norm)
     buffers = DualDemoBuffers(episodes, data.roles, batch_size=int(train.batch_size), seed=int(cfg.seed))
+    if stored is not None:  # the resumed run's pre-training, as stored, on the same data
+        check_same_data(run_dir / PRETRAINING_NAME, stored[1], buffers)
+        stored[0].apply(buffers)
+    (run_dir / "config.yaml").write_text(config_yaml)
+    if train.checkpoint:
+        _probe_checkpoint_folder(run_dir)
     data_seconds = time.perf_counter() - start
     evaluator = Evaluator(  # built (and its settings checked) before any training
         task.env_id,
@@ -230,14 +266,17 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
             results["tracking"] = tracking
     write_json(run_dir / "results.json", results)
     seed_run = SeedRun(cfg, run_dir, results, buffers, evaluator, logger, norm, data.metadata, state, start)
+    seed_run.pretraining = None if stored is None else stored[0]
     seed_run.random_state = torch.get_rng_state()
     return seed_run
 
 
 def pretrain(seed_run: SeedRun) -> None:
     """Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U), from the seed's own
-    random stream. A resumed run does it again, deterministically, and checks that it got the same (no second
-    log rows)."""
+    random stream, store it in the run directory (with ``train.checkpoint``) and build the main stage on it. A
+    resumed run builds its main stage on the pre-training it stored (:func:`open_run` wrote it back into the
+    buffers) and trains nothing; a run from before pre-trainings were stored computes it again and checks that
+    it reproduces the checkpoint's."""
     cfg, results, buffers, state = seed_run.cfg, seed_run.results, seed_run.buffers, seed_run.state
     task = get_env_task(cfg.task.env_id)
     torch.set_rng_state(seed_run.random_state)
@@ -251,7 +290,10 @@ def pretrain(seed_run: SeedRun) -> None:
         logger=seed_run.logger if state is None else None,
         progress=cfg.progress,
     )
-    training = ALGORITHMS[cfg.algo.name](cfg.algo, context)
+    algorithm = ALGORITHMS[cfg.algo.name]
+    if seed_run.pretraining is None:
+        _pretrain_and_store(seed_run, algorithm, context)
+    training = algorithm.main(cfg.algo, context, seed_run.pretraining)
     training.observation_norm = seed_run.norm
     fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
     if state is not None and fingerprint != state["pretraining"]:
@@ -263,6 +305,10 @@ def pretrain(seed_run: SeedRun) -> None:
         results.update(
             diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - seed_run.start
         )
+    step, setup = 0 if state is None else state["step"], time.perf_counter() - seed_run.start
+    note_where(
+        results, current_machine(), "main", step, setup_seconds=setup
+    )  # data + pre-training, or loading
     # Diagnostics (never read by training): D_P's support estimate once, and a fixed subsample of the DICE
     # role on which (nu, lambda) are examined at every evaluation.
     support = performant_support(buffers, pools)
@@ -274,3 +320,18 @@ def pretrain(seed_run: SeedRun) -> None:
         extras["probe_init"] = buffers["init"].storage[:]
     seed_run.training, seed_run.fingerprint, seed_run.extras = training, fingerprint, extras
     seed_run.random_state = torch.get_rng_state()  # where the main stage starts drawing
+
+
+def _pretrain_and_store(seed_run: SeedRun, algorithm: Algorithm, context: BuildContext) -> None:
+    """The algorithm's pre-training, computed; a new run with checkpoints stores it (a resume loads it)."""
+    cfg, fresh = seed_run.cfg, seed_run.state is None
+    store = fresh and bool(cfg.train.checkpoint)
+    data = data_fingerprint(seed_run.buffers) if store else ""  # before the pre-training annotates them
+    seed_run.pretraining = algorithm.pretrain(cfg.algo, context)
+    if store:
+        config_yaml = (seed_run.run_dir / "config.yaml").read_text()
+        save_pretraining(
+            seed_run.run_dir, seed_run.pretraining, config_yaml=config_yaml, data=data, algo=cfg.algo.name
+        )
+    if fresh:
+        note_where(seed_run.results, current_machine(), "pre-training")

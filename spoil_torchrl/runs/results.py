@@ -106,3 +106,34 @@ def summary_table(results: dict) -> str:
     for key in ("normalized_feasible_return", "normalized_cost", "normalized_return", "return", "cost"):
         lines.append(f"| {key} | {final[key]:.3f} | {results['aggregate'][key]:.3f} |")
     return "\n".join(lines)
+
+
+def note_where(
+    results: dict, machine: dict, stage: str, from_step: int | None = None, **measured: float
+) -> None:
+    """Record in ``results["ran_on"]`` that ``stage`` (``"pre-training"`` or ``"main"``, the latter from step
+    ``from_step``) ran on ``machine`` (:func:`~spoil_torchrl.stack.current_machine`), with what was
+    ``measured`` of it (e.g. ``setup_seconds``: from the process's start to the main stage's), and set
+    ``results["resumed_elsewhere"]`` once the run's parts have run on more than one machine (a report marks
+    such runs: their numbers are exact continuations, but of arithmetic done on different CPUs).
+
+    Examples:
+        >>> results = {}
+        >>> note_where(results, {"host": "a", "cpu": "x"}, "pre-training")
+        >>> note_where(results, {"host": "a", "cpu": "x"}, "main", 0)
+        >>> "resumed_elsewhere" in results
+        False
+        >>> note_where(results, {"host": "b", "cpu": "y"}, "main", 500)
+        >>> results["resumed_elsewhere"], [part["stage"] for part in results["ran_on"]]
+        (True, ['pre-training', 'main', 'main'])
+    """
+    part = {
+        "stage": stage,
+        **({} if from_step is None else {"from_step": int(from_step)}),
+        **machine,
+        **measured,
+    }
+    parts = results.setdefault("ran_on", [])
+    parts.append(part)
+    if len({(p.get("host"), p.get("cpu")) for p in parts}) > 1:
+        results["resumed_elsewhere"] = True

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from spoil_torchrl.algorithms import PolicyTraining
+from spoil_torchrl.algorithms import PolicyTraining, Pretraining
 from spoil_torchrl.data import DualDemoBuffers
 from spoil_torchrl.data.parallel import Job
 from spoil_torchrl.divergence import check_finite
@@ -61,6 +61,7 @@ class SeedRun:
     state: dict | None  # the checkpoint continued from (resume), else None
     start: float
     random_state: torch.Tensor | None = None  # torch's generator where this seed's run has got to
+    pretraining: Pretraining | None = None  # the algorithm's pre-training (stored by the run, or loaded)
     training: PolicyTraining | None = None
     fingerprint: str = ""
     extras: dict = field(default_factory=dict)  # pools, support estimate, diagnostics' probe
