@@ -17,8 +17,8 @@ for every seed:
    stage of ``algo.name`` in ``spoil_torchrl.algorithms``; a baseline pre-trains what it needs, or nothing).
    The run stores it, and a resumed run loads it instead of training again.
 3. Optimise (nu, lambda) and pi with ``torchrl.trainers.Trainer``, evaluating every ``train.eval_interval``
-   steps in the real environment (``train_one``; ``train_seeds`` trains every seed's main stage at once in one
-   vmapped, compiled update).
+   steps in the real environment (``train``: one seed, or every seed's main stage at once in one vmapped,
+   compiled update).
 4. Output: the run directory holds ``config.yaml`` (resolved), ``logs/`` (TorchRL logger), ``checkpoints/``,
    ``results.json`` (every evaluation, raw and normalised, and the paper's aggregate; for DICE methods the
    diagnostics of ``spoil_torchrl.eval.dice_diagnostics`` at every evaluation and a text report at the end)
@@ -47,7 +47,7 @@ from spoil_torchrl.runs.outcome import ended_in_one_line, is_sweep_job
 from spoil_torchrl.runs.results import summary_table
 from spoil_torchrl.runs.seed_run import note_precision, recorded_failure
 from spoil_torchrl.runs.settings import name_dataset_by_source
-from spoil_torchrl.runs.training import train_one, train_seeds
+from spoil_torchrl.runs.training import train
 from spoil_torchrl.trainers import stop_on_signals
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
             for seed_run in runs:
                 pretrain(seed_run)
             # 3.-4. Optimise (nu, lambda) and pi, evaluating as it goes; results.json with the aggregate
-            return train_seeds(runs) if claim.vectorised else train_one(runs[0])
+            results = train(runs, vectorised=claim.vectorised)
+            return results if claim.vectorised else results[0]
 
 
 @hydra.main(config_path="../configs", config_name="spoildice_dsrl", version_base="1.3")

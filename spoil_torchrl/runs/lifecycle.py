@@ -74,7 +74,7 @@ class Claim:
         finished: ``resume=auto`` found every seed finished with these settings; nothing was claimed.
         seeds: per seed, its settings (``seed=<k>``), its run directory and the checkpoint it continues from
             (``None``: it starts), the arguments of :func:`open_run` before ``start``.
-        vectorised: a ``seeds=[...]`` run (its main stages train at once, ``train_seeds``).
+        vectorised: a ``seeds=[...]`` run (its main stages train at once, ``train(..., vectorised=True)``).
         start: when the run started (``time.perf_counter``).
     """
 

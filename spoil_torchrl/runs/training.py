@@ -1,15 +1,22 @@
 """The main stage of a run (Algorithm 1's loop): optimise the algorithm's losses with the TorchRL Trainer,
 evaluating every ``train.eval_interval`` steps, checkpointing after each evaluation, and finishing with the
-paper's aggregate. :func:`train_one` trains one seed; :func:`train_seeds` trains the seeds of a ``seeds=[...]``
-run at once (the networks stacked along a seed dimension, one vmapped, compiled update,
-:class:`~spoil_torchrl.trainers.vectorized.VectorizedStepper`), each seed evaluated, logged and checkpointed as
-its own run."""
+paper's aggregate.
+
+:func:`train` is the one loop, for one seed and for the seeds of a ``seeds=[...]`` run. What differs is the
+stepper (:class:`Steps`): one seed's own (compiled with ``train.compile``), or every seed's networks stacked
+along a seed dimension in one vmapped, compiled update
+(:class:`~spoil_torchrl.trainers.vectorized.VectorizedStepper`). The hooks are written once: each seed's
+losses logged into its own logger, each seed evaluated (the rollouts of several seeds on the spare cores too),
+logged and checkpointed as its own run, and finished with its aggregate.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import math
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
 from torch import nn
 
@@ -37,123 +44,74 @@ def _steps_per_batch(train) -> int:
     return math.gcd(int(train.eval_interval), int(train.steps), 100)
 
 
-def train_one(seed_run: SeedRun) -> dict:
-    """Optimise the main stage with the TorchRL Trainer, evaluating every ``train.eval_interval`` steps; returns
-    the content of the finished ``results.json``."""
-    cfg, training, train = seed_run.cfg, seed_run.training, seed_run.cfg.train
-    seed_run.results["status"] = "training"
-    train_start = main_stage_clock(seed_run)
+@dataclass
+class Steps:
+    """What the main stage steps and draws, for one seed or several.
 
-    def evaluate_now(batch) -> dict | None:
-        step = trainer.collected_frames
-        if not evaluation_due(step, cfg):
-            return None
-        result = evaluate(seed_run, step, train_start)
-        trainer.progress.note(
-            f"step {step}: feasible return {result['normalized_feasible_return']:.2f}, "
-            f"cost {result['normalized_cost']:.2f}"
-        )
-        return {f"eval/{key}": result[key] for key in METRICS}
+    Attributes:
+        stepper: the Trainer's optimisation stepper.
+        sample: one batch for it (every seed's batch, for several).
+        seed_states: ``trainer -> [(trainer state, random state)]``, one per seed, as that seed's single run
+            checkpoints it (called after an evaluation).
+        resume: ``trainer -> None``: the stepper, the Trainer's counters and every random stream put back where
+            the seeds' checkpoints were taken.
+        label: how the update ran, for ``results.json`` (``update_step``), once training has run.
+    """
 
-    def checkpoint(batch) -> None:  # runs after the Trainer has logged the evaluation
-        step, evaluations = trainer.collected_frames, seed_run.results["evaluations"]
-        if train.checkpoint and evaluations and evaluations[-1]["step"] == step:
-            save_state(seed_run, step, trainer.state_dict(), rng_state(seed_run.buffers), train_start)
+    stepper: object
+    sample: Callable
+    seed_states: Callable
+    resume: Callable
+    label: Callable[[], str]
 
-    if train.compile:  # the whole update as one compiled graph; says so and runs eagerly where it cannot
+
+def one_seed(seed_run: SeedRun) -> Steps:
+    """The steps of one seed's run: its own stepper (compiled with ``train.compile``; said and run eagerly
+    where it cannot be), its buffers' batches."""
+    training = seed_run.training
+    if seed_run.cfg.train.compile:  # the whole update as one compiled graph
         training.stepper = CompiledStepper.from_stepper(training.stepper)
-    trainer = offline_trainer(
-        training.stepper,
-        seed_run.buffers.sample,
-        total_steps=int(train.steps),
-        steps_per_batch=_steps_per_batch(train),
-        logger=seed_run.logger,
-        log_interval=int(train.log_interval),
-        progress_bar=cfg.progress,
-        progress_label=f"training {cfg.algo.name}",
-    )
-    trainer.register_op("post_steps_log", evaluate_now)
-    trainer.register_op("post_steps_log", checkpoint)
-    state = seed_run.state
-    if state is not None:  # continue exactly where the checkpoint was taken
+
+    def resume(trainer) -> None:
+        state = seed_run.state
         trainer.load_state_dict(state["trainer"])
         training.stepper.load_state_dict(state["stepper"])
         set_rng_state(state["rng"], seed_run.buffers)
-    with rollout_writer(
-        seed_run
-    ) as writer:  # every evaluation episode into the MCAP file, flushed per episode
-        seed_run.evaluator.writer = writer
-        trainer.train()
-    return finish(
-        seed_run, "compiled" if getattr(training.stepper, "compiled", False) else "eager", train_start
+
+    return Steps(
+        training.stepper,
+        seed_run.buffers.sample,
+        lambda trainer: [(trainer.state_dict(), rng_state(seed_run.buffers))],
+        resume,
+        lambda: "compiled" if getattr(training.stepper, "compiled", False) else "eager",
     )
 
 
-def train_seeds(runs: list[SeedRun]) -> list[dict]:
-    """The main stage of every seed at once: one Trainer, one vmapped update; each seed evaluated, logged and
-    checkpointed as its own run. Returns each seed's finished ``results.json`` content."""
-    cfg, train = runs[0].cfg, runs[0].cfg.train
-    for seed_run in runs:
-        seed_run.results["status"] = "training"
-    starts = [main_stage_clock(seed_run) for seed_run in runs]
+def vectorised_seeds(runs: list[SeedRun]) -> Steps:
+    """The steps of several seeds at once: one vmapped update over their stacked networks
+    (:class:`~spoil_torchrl.trainers.vectorized.VectorizedStepper`), each seed drawing from its own buffers and
+    random stream, and each checkpointed as its single run would be."""
     stepper = VectorizedStepper(
         [r.training.stepper for r in runs],
         [r.random_state for r in runs],
         seeds=[int(r.cfg.seed) for r in runs],
-        compile=bool(train.compile),
-    )
-    trainer = offline_trainer(
-        stepper,
-        lambda: stepper.batch([seed_run.buffers.sample() for seed_run in runs]),
-        total_steps=int(train.steps),
-        steps_per_batch=_steps_per_batch(train),
-        progress_bar=cfg.progress,
-        progress_label=f"training {cfg.algo.name}, {len(runs)} seeds",
+        compile=bool(runs[0].cfg.train.compile),
     )
 
-    def log_losses(optim_steps: int, losses) -> None:  # each seed's averages into its own logger
-        step, interval = trainer.collected_frames, int(train.log_interval)
-        if losses is None or step // interval == (step - trainer.optim_steps_per_batch) // interval:
-            return
+    def seed_states(trainer) -> list[tuple[dict, dict]]:
+        whole = trainer.state_dict()  # (syncs every seed's stepper)
+        states = []
         for i, seed_run in enumerate(runs):
-            if seed_run.logger is not None:
-                for key, value in losses.items():
-                    seed_run.logger.log_scalar(key, float(value[i]), step=step)
+            own = seed_run.training.stepper
+            state = whole | {  # the trainer state of this seed's single-seed run
+                "loss_module": nn.ModuleDict(own.losses).state_dict(),
+                "optimization_stepper": own.state_dict(),
+            }
+            random = {"torch": stepper.rng_states[i][0], "buffers": seed_run.buffers.rng_state()}
+            states.append((state, random))
+        return states
 
-    def evaluate_now(batch) -> None:
-        step = trainer.collected_frames
-        if not evaluation_due(step, cfg):
-            return
-        stepper.sync()  # every seed's stepper holds its networks and optimiser states again
-        rollouts = pool.map([rollout_job(seed_run) for seed_run in runs])  # on the spare cores too
-        results, started = [], time.perf_counter()
-        for seed_run, t0 in zip(runs, starts, strict=True):  # a seed's time: from the previous seed's end
-            results.append(evaluate(seed_run, step, t0, next(rollouts), started))
-            started = time.perf_counter()
-        for seed_run, result in zip(runs, results, strict=True):
-            if seed_run.logger is not None:
-                for key in METRICS:
-                    seed_run.logger.log_scalar(f"eval/{key}", result[key], step=step)
-        if train.checkpoint:  # a kill while they are written leaves each seed one of the step before
-            keep_previous_checkpoints([seed_run.run_dir for seed_run in runs])
-            whole = trainer.state_dict()
-            for i, (seed_run, t0) in enumerate(zip(runs, starts, strict=True)):
-                own = seed_run.training.stepper
-                state = whole | {  # the trainer state of this seed's single-seed run
-                    "loss_module": nn.ModuleDict(own.losses).state_dict(),
-                    "optimization_stepper": own.state_dict(),
-                }
-                random = {"torch": stepper.rng_states[i][0], "buffers": seed_run.buffers.rng_state()}
-                save_state(seed_run, step, state, random, t0)
-        mean = {key: sum(r[key] for r in results) / len(results) for key in METRICS}
-        trainer.progress.note(
-            f"step {step}: feasible return {mean['normalized_feasible_return']:.2f}, "
-            f"cost {mean['normalized_cost']:.2f} (mean of {len(runs)} seeds)"
-        )
-
-    trainer.register_op("post_optim_complete_log", log_losses)
-    trainer.register_op("post_steps_log", evaluate_now)
-    if runs[0].state is not None:  # every seed, and the Trainer's counters, where the checkpoints were taken
+    def resume(trainer) -> None:
         seeds_state = {
             "seeds": [r.state["stepper"] for r in runs],
             "rng": [(r.state["rng"]["torch"], None) for r in runs],
@@ -164,13 +122,88 @@ def train_seeds(runs: list[SeedRun]) -> list[dict]:
         )
         for seed_run in runs:
             seed_run.buffers.set_rng_state(seed_run.state["rng"]["buffers"])
+
+    return Steps(
+        stepper,
+        lambda: stepper.batch([seed_run.buffers.sample() for seed_run in runs]),
+        seed_states,
+        resume,
+        lambda: "vectorised, compiled" if stepper.compiled else "vectorised, eager",
+    )
+
+
+def train(runs: list[SeedRun], *, vectorised: bool | None = None) -> list[dict]:
+    """The main stage of every seed in ``runs``: one Trainer, each seed evaluated, logged and checkpointed as
+    its own run. ``vectorised`` (default: more than one seed) trains them in one vmapped update
+    (:func:`vectorised_seeds`), else the one seed with its own stepper (:func:`one_seed`). Returns each seed's
+    finished ``results.json`` content."""
+    cfg, train_cfg = runs[0].cfg, runs[0].cfg.train
+    for seed_run in runs:
+        seed_run.results["status"] = "training"
+    starts = [main_stage_clock(seed_run) for seed_run in runs]
+    vectorised = len(runs) > 1 if vectorised is None else vectorised
+    steps = vectorised_seeds(runs) if vectorised else one_seed(runs[0])
+    several = f", {len(runs)} seeds" if len(runs) > 1 else ""
+    trainer = offline_trainer(
+        steps.stepper,
+        steps.sample,
+        total_steps=int(train_cfg.steps),
+        steps_per_batch=_steps_per_batch(train_cfg),
+        progress_bar=cfg.progress,
+        progress_label=f"training {cfg.algo.name}{several}",
+    )
+
+    def log_losses(optim_steps: int, losses) -> None:  # each seed's averages into its own logger
+        step, interval = trainer.collected_frames, int(train_cfg.log_interval)
+        if losses is None or step // interval == (step - trainer.optim_steps_per_batch) // interval:
+            return
+        for i, seed_run in enumerate(runs):
+            if seed_run.logger is not None:
+                for key, value in losses.items():
+                    seed_run.logger.log_scalar(key, float(value.reshape(-1)[i]), step=step)
+
+    def evaluate_now(batch) -> None:
+        step = trainer.collected_frames
+        if not evaluation_due(step, cfg):
+            return
+        if hasattr(steps.stepper, "sync"):  # every seed's stepper holds its networks, optimiser states again
+            steps.stepper.sync()
+        results, started = [], time.perf_counter()
+        rollouts = pool.map([rollout_job(seed_run) for seed_run in runs])  # on the spare cores too
+        for seed_run, t0 in zip(runs, starts, strict=True):  # a seed's time: from the previous seed's end
+            results.append(evaluate(seed_run, step, t0, next(rollouts), started))
+            started = time.perf_counter()
+            if seed_run.logger is not None:
+                for key in METRICS:
+                    seed_run.logger.log_scalar(f"eval/{key}", results[-1][key], step=step)
+        if train_cfg.checkpoint:  # a kill while they are written leaves each seed one of the step before
+            if len(runs) > 1:
+                keep_previous_checkpoints([seed_run.run_dir for seed_run in runs])
+            for seed_run, t0, (state, random) in zip(runs, starts, steps.seed_states(trainer), strict=True):
+                save_state(seed_run, step, state, random, t0)
+        mean = {key: sum(r[key] for r in results) / len(results) for key in METRICS}
+        of = f" (mean of {len(runs)} seeds)" if len(runs) > 1 else ""
+        trainer.progress.note(
+            f"step {step}: feasible return {mean['normalized_feasible_return']:.2f}, "
+            f"cost {mean['normalized_cost']:.2f}{of}"
+        )
+
+    trainer.register_op("post_optim_complete_log", log_losses)
+    trainer.register_op("post_steps_log", evaluate_now)
+    if runs[0].state is not None:  # continue exactly where the checkpoints were taken
+        steps.resume(trainer)
     with contextlib.ExitStack() as stack:
-        for seed_run in runs:
+        for seed_run in runs:  # every evaluation episode into the seed's MCAP file, flushed per episode
             seed_run.evaluator.writer = stack.enter_context(rollout_writer(seed_run))
         pool = stack.enter_context(
             RolloutPool(workers=min(len(runs), available_cores()) - 1, warm_up=ROLLOUT_MODULES)
         )
         trainer.train()
-    stepper.sync()
-    update_step = "vectorised, compiled" if stepper.compiled else "vectorised, eager"
-    return [finish(seed_run, update_step, t0) for seed_run, t0 in zip(runs, starts, strict=True)]
+    if hasattr(steps.stepper, "sync"):
+        steps.stepper.sync()
+    return [finish(seed_run, steps.label(), t0) for seed_run, t0 in zip(runs, starts, strict=True)]
+
+
+def train_one(seed_run: SeedRun) -> dict:
+    """:func:`train` for one seed's run; returns its finished ``results.json`` content."""
+    return train([seed_run])[0]
