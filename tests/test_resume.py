@@ -219,31 +219,11 @@ def _step(checkpoint: Path) -> int | None:
         return None
 
 
-def test_resume_refuses_other_settings_and_a_damaged_checkpoint(tmp_path, tiny_pc1_dataset):
-    run_dir = tmp_path / "run"
-    kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
-    before = files(run_dir)
-    assert ".hydra/overrides.yaml" in before and "run.lock" in before  # the killed run's record and lock
-    proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", "train.lr=0.1", ok=False)
-    assert proc.returncode == 2 and "train.lr" in proc.stderr
-    assert files(run_dir) == before  # the refused command changed nothing, Hydra's record included
-    proc = run_short(tiny_pc1_dataset, run_dir, ok=False)  # a start over it
-    assert proc.returncode == 2 and "already holds a run" in proc.stderr and files(run_dir) == before
-    checkpoint = run_dir / "checkpoints" / "training_state.pt"
-    data = bytearray(checkpoint.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    checkpoint.write_bytes(bytes(data))
-    proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
-    assert proc.returncode == 2 and str(checkpoint) in proc.stderr and "Traceback" not in proc.stderr
-
-
-def test_resume_refuses_a_damaged_or_foreign_stored_pretraining_and_changes_nothing(
-    tmp_path, tiny_pc1_dataset
-):
+def _refuses_a_damaged_or_foreign_stored_pretraining(run_dir: Path, dataset) -> None:
+    """A resume refuses a truncated stored pre-training, one of other settings and one of other data, in one
+    line naming the file, and changes nothing in the run directory (its lock included)."""
     from spoil_torchrl.runs.checkpoint import load_checkpoint, save_checkpoint
 
-    run_dir = tmp_path / "run"
-    kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
     stored = run_dir / "checkpoints" / "pretraining.pt"
     good = stored.read_bytes()
     state = load_checkpoint(stored)
@@ -258,11 +238,31 @@ def test_resume_refuses_a_damaged_or_foreign_stored_pretraining_and_changes_noth
         else:
             save_checkpoint(stored, content)
         before = files(run_dir)
-        proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
+        proc = run_short(dataset, run_dir, "resume=true", ok=False)
         assert proc.returncode == 2 and str(stored) in proc.stderr, (case, proc.stderr[-2000:])
         assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, case
         assert files(run_dir) == before, case
     assert "other data" in proc.stderr
+    stored.write_bytes(good)
+
+
+def test_resume_refuses_other_settings_and_a_damaged_checkpoint(tmp_path, tiny_pc1_dataset):
+    run_dir = tmp_path / "run"
+    kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
+    before = files(run_dir)
+    assert ".hydra/overrides.yaml" in before and "run.lock" in before  # the killed run's record and lock
+    proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", "train.lr=0.1", ok=False)
+    assert proc.returncode == 2 and "train.lr" in proc.stderr
+    assert files(run_dir) == before  # the refused command changed nothing, Hydra's record included
+    proc = run_short(tiny_pc1_dataset, run_dir, ok=False)  # a start over it
+    assert proc.returncode == 2 and "already holds a run" in proc.stderr and files(run_dir) == before
+    _refuses_a_damaged_or_foreign_stored_pretraining(run_dir, tiny_pc1_dataset)
+    checkpoint = run_dir / "checkpoints" / "training_state.pt"
+    data = bytearray(checkpoint.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    checkpoint.write_bytes(bytes(data))
+    proc = run_short(tiny_pc1_dataset, run_dir, "resume=true", ok=False)
+    assert proc.returncode == 2 and str(checkpoint) in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_commands_refused_on_a_finished_run_leave_it_byte_identical(

@@ -203,6 +203,8 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
             stored = load_pretraining(run_dir, config_yaml, algo=cfg.algo.name)
     task = get_env_task(cfg.task.env_id)
     train = cfg.train
+    if train.checkpoint:
+        _probe_checkpoint_folder(run_dir)
 
     # Input: D_S, D_P, D_U (episode ids of one dataset) and the initial states D_0.
     # (an algorithm that needs another role, e.g. SafeDICE's non-preferred D_N, lists it in algo.extra_roles)
@@ -225,8 +227,6 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
         check_same_data(run_dir / PRETRAINING_NAME, stored[1], buffers)
         stored[0].apply(buffers)
     (run_dir / "config.yaml").write_text(config_yaml)
-    if train.checkpoint:
-        _probe_checkpoint_folder(run_dir)
     data_seconds = time.perf_counter() - start
     evaluator = Evaluator(  # built (and its settings checked) before any training
         task.env_id,

@@ -97,6 +97,16 @@ def _all_pairs(n_states: int, n_actions: int) -> TensorDict:
     return TensorDict({"observation": one_hot(s, n_states), "action": one_hot(a, n_actions)}, [len(s)])
 
 
+def _support_table(support: SupportEstimator, pairs: TensorDict) -> torch.Tensor:
+    """Eq. (13) read out for every state-action pair: the pair's log-ratio at least the fitted threshold, up to
+    float32 rounding. On one-hot inputs all samples of a pair share one log-ratio, so the kappa-quantile lands
+    exactly on a pair's value; computed again in a batch of another size (another matrix-product kernel), that
+    value can come out one ulp below the threshold taken from the safe samples' batch."""
+    threshold = support.threshold
+    tolerance = 1e-5 * torch.clamp(threshold.abs(), min=1.0)
+    return (support.log_ratio(pairs.clone()).reshape(-1) >= threshold - tolerance).cpu()
+
+
 def train_tabular_spoildice(
     problem: DualDemoProblem,
     config: TabularTrainingConfig | None = None,
@@ -199,7 +209,7 @@ def train_tabular_spoildice(
         with policy_loss.actor_network_params.to_module(policy_loss.actor_network):
             policy = policy_loss.actor_network.get_dist(states).probs.double().numpy()
         pairs = _all_pairs(n_s, n_a)
-        estimated_support = support(pairs.clone())["safe_support"].reshape(n_s, n_a).bool().numpy()
+        estimated_support = _support_table(support, pairs).reshape(n_s, n_a).numpy()
         log_ratio = ratio_p(pairs.clone())["log_ratio_performant"].reshape(n_s, n_a).double().numpy()
     policy = policy / policy.sum(axis=1, keepdims=True)
     return TabularTrainingResult(occupancy(mdp, policy), policy, estimated_support, log_ratio, history)
