@@ -248,27 +248,35 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
         results.setdefault("resumed_at", []).append(int(state["step"]))
         trim_csv_logs(run_dir / "logs", state["csv_rows"])
     else:
-        results = {
-            "algo": cfg.algo.name,
-            "dataset": cfg.dataset.name,
-            "env_id": task.env_id,
-            "seed": int(cfg.seed),
-            "config_hash": hashlib.sha256(config_yaml.encode()).hexdigest()[:12],
-            "stack": current_stack(),  # the versions that decide the numbers (spoil_torchrl.stack)
-            "data": data.summary(),
-            "status": "pre-training",
-            "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)
-            "evaluations": [],
-        }
-        if experiment_cell(cfg) is not None:  # the cell of a paper experiment's sweep (its figure reads it)
-            results["experiment"] = experiment_cell(cfg)
-        if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
-            results["tracking"] = tracking
+        results = _new_results(cfg, task.env_id, config_yaml, data.summary(), data_seconds, tracking)
     write_json(run_dir / "results.json", results)
     seed_run = SeedRun(cfg, run_dir, results, buffers, evaluator, logger, norm, data.metadata, state, start)
     seed_run.pretraining = None if stored is None else stored[0]
     seed_run.random_state = torch.get_rng_state()
     return seed_run
+
+
+def _new_results(
+    cfg: DictConfig, env_id: str, config_yaml: str, data: dict, data_seconds: float, tracking: dict | None
+) -> dict:
+    """The ``results.json`` of a run that starts: what it is, what it runs on, and no evaluation yet."""
+    results = {
+        "algo": cfg.algo.name,
+        "dataset": cfg.dataset.name,
+        "env_id": env_id,
+        "seed": int(cfg.seed),
+        "config_hash": hashlib.sha256(config_yaml.encode()).hexdigest()[:12],
+        "stack": current_stack(),  # the versions that decide the numbers (spoil_torchrl.stack)
+        "data": data,
+        "status": "pre-training",
+        "data_seconds": data_seconds,  # loading and preparing the data (pretrain_seconds includes it)
+        "evaluations": [],
+    }
+    if experiment_cell(cfg) is not None:  # the cell of a paper experiment's sweep (its figure reads it)
+        results["experiment"] = experiment_cell(cfg)
+    if tracking:  # what a resumed run needs to continue the same tracked run (W&B's run id)
+        results["tracking"] = tracking
+    return results
 
 
 def pretrain(seed_run: SeedRun) -> None:

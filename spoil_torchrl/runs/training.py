@@ -155,12 +155,8 @@ def train(runs: list[SeedRun], *, vectorised: bool | None = None) -> list[dict]:
 
     def log_losses(optim_steps: int, losses) -> None:  # each seed's averages into its own logger
         step, interval = trainer.collected_frames, int(train_cfg.log_interval)
-        if losses is None or step // interval == (step - trainer.optim_steps_per_batch) // interval:
-            return
-        for i, seed_run in enumerate(runs):
-            if seed_run.logger is not None:
-                for key, value in losses.items():
-                    seed_run.logger.log_scalar(key, float(value.reshape(-1)[i]), step=step)
+        if losses is not None and step // interval != (step - trainer.optim_steps_per_batch) // interval:
+            _log_per_seed(runs, losses, step)
 
     def evaluate_now(batch) -> None:
         step = trainer.collected_frames
@@ -173,9 +169,7 @@ def train(runs: list[SeedRun], *, vectorised: bool | None = None) -> list[dict]:
         for seed_run, t0 in zip(runs, starts, strict=True):  # a seed's time: from the previous seed's end
             results.append(evaluate(seed_run, step, t0, next(rollouts), started))
             started = time.perf_counter()
-            if seed_run.logger is not None:
-                for key in METRICS:
-                    seed_run.logger.log_scalar(f"eval/{key}", results[-1][key], step=step)
+        _log_per_seed(runs, {f"eval/{key}": [r[key] for r in results] for key in METRICS}, step)
         if train_cfg.checkpoint:  # a kill while they are written leaves each seed one of the step before
             if len(runs) > 1:
                 keep_previous_checkpoints([seed_run.run_dir for seed_run in runs])
@@ -202,6 +196,16 @@ def train(runs: list[SeedRun], *, vectorised: bool | None = None) -> list[dict]:
     if hasattr(steps.stepper, "sync"):
         steps.stepper.sync()
     return [finish(seed_run, steps.label(), t0) for seed_run, t0 in zip(runs, starts, strict=True)]
+
+
+def _log_per_seed(runs: list[SeedRun], values, step: int) -> None:
+    """Log ``values`` (key -> one value per seed: a list, or a tensor of shape ``[seeds]`` or ``[]``) into
+    each seed's own logger at ``step``."""
+    for i, seed_run in enumerate(runs):
+        if seed_run.logger is not None:
+            for key, value in values.items():
+                one = value[i] if isinstance(value, list) else value.reshape(-1)[i]
+                seed_run.logger.log_scalar(key, float(one), step=step)
 
 
 def train_one(seed_run: SeedRun) -> dict:
