@@ -16,6 +16,8 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
 * ``point-circle2-controlled`` -- the same four pools for SafetyPointCircle2-v0.
 * ``half-cheetah-velocity-controlled`` -- the same four pools for SafetyHalfCheetahVelocity-v1 (2,000 episodes
   of 1,000 steps).
+* ``hopper-velocity-controlled`` -- the same four pools for SafetyHopperVelocity-v1 (2,000 episodes of at most
+  1,000 steps: a hopper that falls ends its episode).
 """
 
 from __future__ import annotations
@@ -104,6 +106,12 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             "SafetyHalfCheetahVelocity-v1",
             _typed(500),
             "controlled HalfCheetahVelocity pools: 500 episodes of each policy type (paper F.2)",
+        ),
+        GeneratedDataset(
+            "hopper-velocity-controlled",
+            "SafetyHopperVelocity-v1",
+            _typed(500),
+            "controlled HopperVelocity pools: 500 episodes of each policy type (paper F.2)",
         ),
     ]
 }
