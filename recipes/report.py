@@ -322,6 +322,8 @@ def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
         print(f"skipped {path.parent}: {reason}", file=sys.stderr)
     if isinstance(experiment, Exception):
         raise SystemExit(f"error: {experiment}")
+    for cell in experiment.resumed_elsewhere:  # exact continuations, of arithmetic done on different CPUs
+        print(f"warning: {cell} was resumed on another machine (its results.json's ran_on)", file=sys.stderr)
     if args.plot and experiment.level is None:
         raise SystemExit(f"error: {experiment.name} has one configuration: a table, not a figure")
     try:

@@ -47,13 +47,15 @@ Cells = dict[tuple[str, object, str], list[dict]]
 @dataclass
 class Experiment:
     """The finished cells of one experiment: its ``name``, the setting it varies (``level``, ``None`` for a
-    table) and ``cells``; ``unfinished`` lists the other cells found (run directory, status)."""
+    table) and ``cells``; ``unfinished`` lists the other cells found (run directory, status);
+    ``resumed_elsewhere`` the cells resumed on another machine than the one that started them."""
 
     name: str
     level: str | None
     cells: Cells = field(default_factory=dict)
     unfinished: list[tuple[str, str]] = field(default_factory=list)
     files: dict[str, dict[str, int]] = field(default_factory=dict)  # dataset -> file fingerprint -> cells
+    resumed_elsewhere: list[str] = field(default_factory=list)  # cells whose parts ran on several machines
 
     @property
     def datasets(self) -> list[str]:
@@ -175,6 +177,8 @@ def _cells(name: str, runs: list[tuple[Path, dict]], *, mixed_files: bool = Fals
                     "one dataset made again elsewhere, e.g. on another CPU, let its files share the tables: "
                     "--mixed-files)"
                 )
+        if results.get("resumed_elsewhere"):
+            experiment.resumed_elsewhere.append(str(path.parent))
         key = (results["dataset"], results["experiment"]["value"], results["algo"])
         if (*key, results["seed"]) in seen:
             raise ValueError(

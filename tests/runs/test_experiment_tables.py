@@ -64,6 +64,12 @@ def test_cells_group_by_task_level_and_method(tmp_path):
     assert "**a**" in text and "**b**" in text  # and one table per task
 
 
+def test_cells_resumed_on_another_machine_are_named(tmp_path):
+    _grid(tmp_path)
+    moved = _cell(tmp_path, "a", 0.5, "bc", 0, 0.2, 3.0, resumed_elsewhere=True)
+    assert load_experiment([tmp_path]).resumed_elsewhere == [str(moved)]
+
+
 def test_score_matrices_hold_the_seeds_every_task_has(tmp_path):
     _grid(tmp_path)
     _cell(tmp_path, "a", 0.25, "bc", 2, 0.9, 0.0)  # a third seed on one task only
