@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from spoil_torchrl.algorithms import ALGORITHMS, BuildContext, dice
@@ -101,3 +102,35 @@ def test_fbc_with_the_oracle_support_keeps_exactly_the_safe_trajectories_of_d_p(
         ALGORITHMS["fbc"]({**cfg, "support": "true"}, BuildContext(buffers, 28, 2, progress=False))
     with pytest.raises(ValueError, match="needs the cost limit"):
         ALGORITHMS["fbc"](cfg, BuildContext(buffers, 28, 2, progress=False))
+
+
+def test_a_stored_pretraining_rebuilds_the_same_main_stage_without_training(tiny_pc1_dataset, monkeypatch):
+    """The pre-training's value holds what the main stage reads: written into fresh buffers, it gives the same
+    annotations and diagnostics, and the main stage builds without training a discriminator."""
+    from spoil_torchrl.algorithms import Pretraining
+
+    cfg = _spoildice_cfg(kappa=0.05)
+    algorithm = ALGORITHMS["spoildice"]
+    buffers = _buffers(tiny_pc1_dataset)
+    stage = algorithm.pretrain(cfg, BuildContext(buffers, 28, 2, progress=False))
+    assert set(stage.annotations) == {"unlabeled", "performant"}
+    assert set(stage.networks) == {"C_performant", "C_safe"}
+    with pytest.raises(TypeError):  # read-only
+        stage.annotations["unlabeled"]["safe_support"] = None
+
+    def trained(*args, **kwargs):
+        raise AssertionError("the main stage trained a discriminator")
+
+    monkeypatch.setattr(dice, "train_discriminators", trained)
+    fresh = _buffers(tiny_pc1_dataset)
+    loaded = Pretraining(**stage.as_state())
+    loaded.apply(fresh)
+    for role, keys in stage.annotations.items():
+        for key, value in keys.items():
+            assert torch.equal(fresh[role].storage[:][key], value), (role, key)
+    training = algorithm.main(cfg, BuildContext(fresh, 28, 2, progress=False), loaded)
+    assert training.diagnostics == dict(stage.diagnostics) and training.dice is not None
+
+    wrong = Pretraining({"unlabeled": {"safe_support": stage.annotations["unlabeled"]["safe_support"][:5]}})
+    with pytest.raises(ValueError, match="'safe_support' has 5 rows, but role 'unlabeled' stores"):
+        wrong.apply(fresh)
