@@ -313,10 +313,9 @@ def pretrain(seed_run: SeedRun) -> None:
         results.update(
             diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - seed_run.start
         )
+    # where the main stage runs from here, after how long: data and pre-training, or data and loading it
     step, setup = 0 if state is None else state["step"], time.perf_counter() - seed_run.start
-    note_where(
-        results, current_machine(), "main", step, setup_seconds=setup
-    )  # data + pre-training, or loading
+    note_where(results, current_machine(), "main", step, setup_seconds=setup)
     # Diagnostics (never read by training): D_P's support estimate once, and a fixed subsample of the DICE
     # role on which (nu, lambda) are examined at every evaluation.
     support = performant_support(buffers, pools)
