@@ -19,7 +19,7 @@ import hashlib
 import os
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -301,8 +301,9 @@ def pretrain(seed_run: SeedRun) -> None:
     algorithm = ALGORITHMS[cfg.algo.name]
     if seed_run.pretraining is None:
         _pretrain_and_store(seed_run, algorithm, context)
-    training = algorithm.main(cfg.algo, context, seed_run.pretraining)
-    training.observation_norm = seed_run.norm
+    training = replace(
+        algorithm.main(cfg.algo, context, seed_run.pretraining), observation_norm=seed_run.norm
+    )
     fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
     if state is not None and fingerprint != state["pretraining"]:
         raise CheckpointError(

@@ -68,22 +68,22 @@ class Steps:
 def one_seed(seed_run: SeedRun) -> Steps:
     """The steps of one seed's run: its own stepper (compiled with ``train.compile``; said and run eagerly
     where it cannot be), its buffers' batches."""
-    training = seed_run.training
+    stepper = seed_run.training.stepper  # as built (compiled: the same losses and optimisers)
     if seed_run.cfg.train.compile:  # the whole update as one compiled graph
-        training.stepper = CompiledStepper.from_stepper(training.stepper)
+        stepper = CompiledStepper.from_stepper(stepper)
 
     def resume(trainer) -> None:
         state = seed_run.state
         trainer.load_state_dict(state["trainer"])
-        training.stepper.load_state_dict(state["stepper"])
+        stepper.load_state_dict(state["stepper"])
         set_rng_state(state["rng"], seed_run.buffers)
 
     return Steps(
-        training.stepper,
+        stepper,
         seed_run.buffers.sample,
         lambda trainer: [(trainer.state_dict(), rng_state(seed_run.buffers))],
         resume,
-        lambda: "compiled" if getattr(training.stepper, "compiled", False) else "eager",
+        lambda: "compiled" if getattr(stepper, "compiled", False) else "eager",
     )
 
 
