@@ -141,7 +141,8 @@ def claim_runs(cfg: DictConfig, run_dir: Path) -> Iterator[Claim]:
         seeds_resuming = []
         for seed in seeds:
             claimed.append(run_dir / f"seed{seed}")
-            seeds_resuming.append(claim_run_dir(claimed[-1], resume=resume))
+            stored = _stored_pretraining_check(claimed[-1], seed_settings(cfg, seed))
+            seeds_resuming.append(claim_run_dir(claimed[-1], resume=resume, check=stored))
         checkpoints = common_checkpoints(
             claimed, seeds_resuming
         )  # the last step every seed can continue from
@@ -162,6 +163,16 @@ def claim_runs(cfg: DictConfig, run_dir: Path) -> Iterator[Claim]:
         for seed_dir in claimed:
             release_run_dir(seed_dir)
         release_run_dir(run_dir)
+
+
+def _stored_pretraining_check(run_dir: Path, cfg: DictConfig):
+    """The claim check of a seed's folder: a resumed seed's stored pre-training must be readable and its own."""
+
+    def check(resuming: bool) -> None:
+        if resuming and (run_dir / PRETRAINING_NAME).is_file():
+            load_pretraining(run_dir, settings_yaml(cfg), algo=cfg.algo.name)
+
+    return check
 
 
 def _file_state(path: Path) -> tuple[bytes, int] | None:
@@ -299,13 +310,16 @@ def pretrain(seed_run: SeedRun) -> None:
         progress=cfg.progress,
     )
     algorithm = ALGORITHMS[cfg.algo.name]
-    if seed_run.pretraining is None:
+    stored = seed_run.pretraining is not None  # loaded, its data and settings checked (open_run)
+    if not stored:
         _pretrain_and_store(seed_run, algorithm, context)
     training = replace(
         algorithm.main(cfg.algo, context, seed_run.pretraining), observation_norm=seed_run.norm
     )
     fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
-    if state is not None and fingerprint != state["pretraining"]:
+    # a pre-training computed again must reproduce the run's; a stored one is the run's (the main stage's own
+    # float32 statistics, e.g. DemoDICE's reward mean, may round differently on another CPU)
+    if state is not None and not stored and fingerprint != state["pretraining"]:
         raise CheckpointError(
             f"{seed_run.run_dir}: pre-training did not reproduce the run's (another machine, library version or "
             "dataset file?), so it cannot continue exactly; start a new run"

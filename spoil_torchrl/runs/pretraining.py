@@ -84,7 +84,13 @@ def load_pretraining(run_dir: str | Path, config_yaml: str, *, algo: str) -> tup
             another algorithm (one line, naming the file).
     """
     path = Path(run_dir) / PRETRAINING_NAME
-    state = load_checkpoint(path)
+    try:
+        state = load_checkpoint(path)
+    except CheckpointError as err:  # what to do about it, in the same line
+        raise CheckpointError(
+            f"{err}; delete it to resume by computing the pre-training again (exact on the machine that made "
+            "the run)"
+        ) from None
     if state.get("format") != PRETRAINING_FORMAT:
         raise CheckpointError(f"{path}: not a stored pre-training (format {state.get('format')!r})")
     if state.get("algo") != algo:

@@ -114,7 +114,7 @@ def note_where(
     """Record in ``results["ran_on"]`` that ``stage`` (``"pre-training"`` or ``"main"``, the latter from step
     ``from_step``) ran on ``machine`` (:func:`~spoil_torchrl.stack.current_machine`), with what was
     ``measured`` of it (e.g. ``setup_seconds``: from the process's start to the main stage's), and set
-    ``results["resumed_elsewhere"]`` once the run's parts have run on more than one machine (a report marks
+    ``results["resumed_elsewhere"]`` once the run's parts have run on more than one CPU model (a report marks
     such runs: their numbers are exact continuations, but of arithmetic done on different CPUs).
 
     Examples:
@@ -135,5 +135,5 @@ def note_where(
     }
     parts = results.setdefault("ran_on", [])
     parts.append(part)
-    if len({(p.get("host"), p.get("cpu")) for p in parts}) > 1:
+    if len({p.get("cpu") for p in parts}) > 1:  # another host with the same CPU computes the same
         results["resumed_elsewhere"] = True
