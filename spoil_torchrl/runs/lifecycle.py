@@ -350,10 +350,16 @@ def _pretrain_and_store(seed_run: SeedRun, algorithm: Algorithm, context: BuildC
     store = fresh and bool(cfg.train.checkpoint)
     data = data_fingerprint(seed_run.buffers) if store else ""  # before the pre-training annotates them
     seed_run.pretraining = algorithm.pretrain(cfg.algo, context)
+    machine = current_machine()
     if store:
         config_yaml = (seed_run.run_dir / "config.yaml").read_text()
         save_pretraining(
-            seed_run.run_dir, seed_run.pretraining, config_yaml=config_yaml, data=data, algo=cfg.algo.name
+            seed_run.run_dir,
+            seed_run.pretraining,
+            config_yaml=config_yaml,
+            data=data,
+            algo=cfg.algo.name,
+            machine=machine,
         )
     if fresh:
-        note_where(seed_run.results, current_machine(), "pre-training")
+        note_where(seed_run.results, machine, "pre-training")

@@ -21,7 +21,6 @@ from pathlib import Path
 from spoil_torchrl.algorithms import Pretraining
 from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from spoil_torchrl.runs.resume import pretraining_fingerprint, settings_differ
-from spoil_torchrl.stack import current_machine
 
 
 class StoredPretrainingRefused(CheckpointError):
@@ -42,17 +41,17 @@ def data_fingerprint(buffers) -> str:
 
 
 def save_pretraining(
-    run_dir: str | Path, pretraining: Pretraining, *, config_yaml: str, data: str, algo: str
-) -> dict:
+    run_dir: str | Path, pretraining: Pretraining, *, config_yaml: str, data: str, algo: str, machine: dict
+) -> None:
     """Store ``pretraining`` in ``run_dir`` (:data:`PRETRAINING_NAME`) with the run's settings ``config_yaml``,
-    its data fingerprint ``data`` (:func:`data_fingerprint`), the algorithm's name and where it was computed
-    (:func:`~spoil_torchrl.stack.current_machine`); returns that machine record.
+    its data fingerprint ``data`` (:func:`data_fingerprint`), the algorithm's name and the ``machine`` it was
+    computed on (:func:`~spoil_torchrl.stack.current_machine`).
 
     Examples:
         >>> import tempfile
         >>> run_dir = Path(tempfile.mkdtemp())
         >>> stage = Pretraining(diagnostics={"support_threshold": 0.25})
-        >>> _ = save_pretraining(run_dir, stage, config_yaml="seed: 0", data="abc", algo="fbc")
+        >>> save_pretraining(run_dir, stage, config_yaml="seed: 0", data="abc", algo="fbc", machine={})
         >>> load_pretraining(run_dir, "seed: 0", algo="fbc")[0].diagnostics["support_threshold"]
         0.25
         >>> load_pretraining(run_dir, "seed: 1", algo="fbc")  # doctest: +ELLIPSIS
@@ -60,7 +59,6 @@ def save_pretraining(
         ...
         spoil_torchrl.runs.checkpoint.CheckpointError: .../checkpoints/pretraining.pt: made with other settings (seed)...
     """
-    machine = current_machine()
     save_checkpoint(
         Path(run_dir) / PRETRAINING_NAME,
         {
@@ -72,7 +70,6 @@ def save_pretraining(
             **pretraining.as_state(),
         },
     )
-    return machine
 
 
 def load_pretraining(run_dir: str | Path, config_yaml: str, *, algo: str) -> tuple[Pretraining, dict]:
