@@ -12,7 +12,7 @@
 for every seed:
 
 1. Input: D_S, D_P, D_U and the initial states D_0, one TorchRL replay buffer each, states standardised with
-   D_U's mean and standard deviation (``open_run``).
+   D_U's mean and standard deviation (``open_runs``).
 2. Pre-train C_P and C_S, fit the kappa-quantile support cut, annotate D_U once (``pretrain``: the pre-training
    stage of ``algo.name`` in ``spoil_torchrl.algorithms``; a baseline pre-trains what it needs, or nothing).
    The run stores it, and a resumed run loads it instead of training again.
@@ -42,7 +42,7 @@ from omegaconf import DictConfig
 
 from spoil_torchrl.envs import log_mujoco_warnings
 from spoil_torchrl.precision import matmul_precision
-from spoil_torchrl.runs.lifecycle import claim_runs, open_run, pretrain
+from spoil_torchrl.runs.lifecycle import claim_runs, open_runs, pretrain
 from spoil_torchrl.runs.outcome import ended_in_one_line, is_sweep_job
 from spoil_torchrl.runs.results import summary_table
 from spoil_torchrl.runs.seed_run import note_precision, recorded_failure
@@ -62,15 +62,14 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
             return []
         # 1. Input: D_S, D_P, D_U, D_0 in their buffers; the evaluator, the logger and results.json
         # (claim.seeds: each seed's settings, run directory and the checkpoint it continues from)
-        runs = [open_run(*seed, claim.start) for seed in claim.seeds]
+        runs = open_runs(claim)
         with recorded_failure(runs), matmul_precision(cfg.train.get("matmul_precision", "highest")):
             note_precision(runs)  # training's float32 products as configured; every rollout's are IEEE
             # 2. Pre-train C_P and C_S, fit the support cut, annotate D_U (each seed from its own random stream;
             # stored in the run, and loaded, not trained again, when it resumes)
-            for seed_run in runs:
-                pretrain(seed_run)
+            pretrained = [pretrain(inputs) for inputs in runs]
             # 3.-4. Optimise (nu, lambda) and pi, evaluating as it goes; results.json with the aggregate
-            results = train(runs, vectorised=claim.vectorised)
+            results = train(pretrained, vectorised=claim.vectorised)
             return results if claim.vectorised else results[0]
 
 

@@ -183,6 +183,18 @@ def test_seeds_run_each_seed_as_its_own_run_and_resume_bit_exactly(tmp_path, tin
     # as if killed between the two seeds' checkpoints of step 200: seed 1's is still the one of step 100
     shutil.copyfile(saved / "training_state.previous.pt", saved / "training_state.pt")
     assert _step(saved / "training_state.pt") == 100
+    # seed 1's stored pre-training made on other data: refused after seed 0's data is loaded, and no seed's
+    # files (logs, results, settings, locks) change
+    from spoil_torchrl.runs.checkpoint import load_checkpoint, save_checkpoint
+
+    stored = killed / "seed1" / "checkpoints" / "pretraining.pt"
+    good = stored.read_bytes()
+    save_checkpoint(stored, load_checkpoint(stored) | {"data_fingerprint": "0" * 64})
+    before = files(killed)
+    proc = run_short(tiny_pc1_dataset, killed, *seeds, "resume=true", ok=False)
+    assert proc.returncode == 2 and str(stored) in proc.stderr and "other data" in proc.stderr
+    assert files(killed) == before
+    stored.write_bytes(good)
     run_short(tiny_pc1_dataset, killed, *seeds, "resume=true")
     assert json.loads((killed / "seed0" / "results.json").read_text())["resumed_at"] == [100]
     for seed in (0, 1):

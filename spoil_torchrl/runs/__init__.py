@@ -2,9 +2,10 @@
 checked before anything is loaded (``settings``), checkpoints and exact resumption (``checkpoint``, ``resume``),
 ``results.json`` and its aggregate (``results``), the TorchRL logger (``tracking``), one-line endings for a
 user's error, a divergence or Ctrl-C (``outcome``), and the seed runner of the main recipe: a claim and the input
-of Algorithm 1 (``lifecycle``), one seed's bookkeeping (``seed_run``) and the main stage (``training``).
+of Algorithm 1 (``lifecycle``), the values one seed's stages hand on and its
+bookkeeping (``seed_run``) and the main stage (``training``).
 
 The package imports nothing on its own: expert training and the reports read ``directory`` and ``checkpoint``
 without loading the seed runner. Import the module you need, e.g.
-``from spoil_torchrl.runs.lifecycle import claim_runs, open_run, pretrain``.
+``from spoil_torchrl.runs.lifecycle import claim_runs, open_runs, pretrain``.
 """

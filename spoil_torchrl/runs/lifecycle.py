@@ -1,15 +1,14 @@
 """A run of the main recipe from its settings to its trained-but-not-yet-optimised algorithm: claim the run
-directory (:func:`claim_runs`), load the input of Algorithm 1 for each seed (:func:`open_run`) and pre-train what
+directory (:func:`claim_runs`), load the input of Algorithm 1 for each seed (:func:`open_runs`) and pre-train what
 the algorithm needs (:func:`pretrain`). :mod:`spoil_torchrl.runs.training` takes it from there. A user's own
 recipe calls the same functions::
 
     with claim_runs(cfg, run_dir) as claim:
         if not claim.finished:
-            runs = [open_run(*seed, claim.start) for seed in claim.seeds]
+            runs = open_runs(claim)
             with recorded_failure(runs):
-                for seed_run in runs:
-                    pretrain(seed_run)
-                results = train_one(runs[0])
+                pretrained = [pretrain(inputs) for inputs in runs]
+                results = train_one(pretrained[0])
 """
 
 from __future__ import annotations
@@ -25,7 +24,14 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from spoil_torchrl.algorithms import ALGORITHMS, Algorithm, BuildContext, EpisodeConstraint
+from spoil_torchrl.algorithms import (
+    ALGORITHMS,
+    Algorithm,
+    BuildContext,
+    EpisodeConstraint,
+    PolicyTraining,
+    Pretraining,
+)
 from spoil_torchrl.data import (
     DualDemoBuffers,
     fit_observation_normalizer,
@@ -59,7 +65,13 @@ from spoil_torchrl.runs.resume import (
     pretraining_fingerprint,
     trim_csv_logs,
 )
-from spoil_torchrl.runs.seed_run import SeedRun, common_checkpoints, performant_support
+from spoil_torchrl.runs.seed_run import (
+    DiceProbe,
+    PretrainedRun,
+    RunInputs,
+    common_checkpoints,
+    performant_support,
+)
 from spoil_torchrl.runs.settings import SettingsError, check_settings
 from spoil_torchrl.runs.tracking import check_logger_available, make_logger
 from spoil_torchrl.stack import current_machine, current_stack
@@ -103,66 +115,97 @@ def claim_runs(cfg: DictConfig, run_dir: Path) -> Iterator[Claim]:
         RunDirError: another process holds the directory, or it holds a run that cannot be continued.
     """
     start = time.perf_counter()
-    check_settings(OmegaConf.to_container(cfg, resolve=True))  # before any data loading or training
-    check_logger_available(cfg.logger.type)  # a missing tensorboard / wandb fails now, not after pre-training
-    if cfg.algo.name not in ALGORITHMS:
-        raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
+    _check_before_claiming(cfg)
     seeds = [int(s) for s in cfg.get("seeds") or []]
     resume = cfg.get("resume", False)
-    done = [  # resume=auto passes over runs that have finished with these settings (a sweep's finished cells)
-        finished_already(
-            run_dir / f"seed{s}" if seeds else run_dir, settings_yaml(seed_settings(cfg, s)), resume
-        )
-        for s in (seeds or [cfg.seed])
-    ]
-    if all(done):  # said on the console only: the finished run's files stay as they are
+    if _all_finished(cfg, run_dir, seeds, resume):  # said on the console only: the files stay as they are
         print(f"{run_dir}: finished already; nothing to do (resume=auto)")
         yield Claim(finished=True, start=start)
         return
-
-    def same_settings(resuming: bool) -> None:  # a refused resume writes nothing into the run directory
-        if resuming and not seeds:
-            check_resumable(load_checkpoint(run_dir / CHECKPOINT_NAME), settings_yaml(cfg), run_dir)
-            if (run_dir / PRETRAINING_NAME).is_file():  # readable, of this algorithm and these settings
-                load_pretraining(run_dir, settings_yaml(cfg), algo=cfg.algo.name)
-
     stale_lock = _file_state(run_dir / LOCK_NAME)  # a killed run's lock, put back if the resume is refused
-    resuming = claim_run_dir(run_dir, resume="auto" if seeds and resume else resume, check=same_settings)
-    if not resuming:
+    resuming = claim_run_dir(
+        run_dir,
+        resume="auto" if seeds and resume else resume,
+        check=_same_settings_check(cfg, run_dir, seeds),
+    )
+    if not resuming and not (
+        seeds and (run_dir / ".hydra").is_dir()
+    ):  # the record of the command that started it
         write_hydra_record(run_dir, cfg)
-    claimed = []
+    claimed = {}  # the seeds' folders held so far (released at the end), with their locks from before
     try:
         if not seeds:
             checkpoint = run_dir / CHECKPOINT_NAME if resuming else None
             yield Claim(finished=False, seeds=[(cfg, run_dir, checkpoint)], start=start)
-            return
-        # a seeds=[...] run keeps each seed's run in seed<k>/, each claimed on its own
-        (run_dir / "config.yaml").write_text(settings_yaml(cfg))
-        seeds_resuming = []
-        for seed in seeds:
-            claimed.append(run_dir / f"seed{seed}")
-            stored = _stored_pretraining_check(claimed[-1], seed_settings(cfg, seed))
-            seeds_resuming.append(claim_run_dir(claimed[-1], resume=resume, check=stored))
-        checkpoints = common_checkpoints(
-            claimed, seeds_resuming
-        )  # the last step every seed can continue from
-        yield Claim(
-            finished=False,
-            seeds=[
-                (seed_settings(cfg, seed), seed_dir, checkpoint)
-                for seed, seed_dir, checkpoint in zip(seeds, claimed, checkpoints, strict=True)
-            ],
-            vectorised=True,
-            start=start,
-        )
+        else:
+            yield _claim_seeds(cfg, run_dir, seeds, claimed, start)
     except StoredPretrainingRefused:  # refused before the run wrote anything: leave the directory as it was
-        release_run_dir(run_dir)
-        _restore_file(run_dir / LOCK_NAME, stale_lock)
+        for folder, lock in [*claimed.items(), (run_dir, stale_lock)]:
+            release_run_dir(folder)
+            _restore_file(folder / LOCK_NAME, lock)
         raise
     finally:
         for seed_dir in claimed:
             release_run_dir(seed_dir)
         release_run_dir(run_dir)
+
+
+def _check_before_claiming(cfg: DictConfig) -> None:
+    """What can be refused before any data is loaded or anything trained: the settings, the logger's package
+    (a missing tensorboard / wandb fails now, not after pre-training) and the algorithm's name."""
+    check_settings(OmegaConf.to_container(cfg, resolve=True))
+    check_logger_available(cfg.logger.type)
+    if cfg.algo.name not in ALGORITHMS:
+        raise SettingsError(f"algo.name={cfg.algo.name!r} has no builder; available: {', '.join(ALGORITHMS)}")
+
+
+def _all_finished(cfg: DictConfig, run_dir: Path, seeds: list[int], resume) -> bool:
+    """``resume=auto`` passes over runs that have finished with these settings (a sweep's finished cells)."""
+    return all(
+        finished_already(
+            run_dir / f"seed{s}" if seeds else run_dir, settings_yaml(seed_settings(cfg, s)), resume
+        )
+        for s in (seeds or [cfg.seed])
+    )
+
+
+def _same_settings_check(cfg: DictConfig, run_dir: Path, seeds: list[int]):
+    """The claim check of a single-seed run: a resume's checkpoint and stored pre-training must be readable
+    and of these settings (a refused resume writes nothing into the run directory)."""
+
+    def check(resuming: bool) -> None:
+        if resuming and not seeds:
+            check_resumable(load_checkpoint(run_dir / CHECKPOINT_NAME), settings_yaml(cfg), run_dir)
+            if (run_dir / PRETRAINING_NAME).is_file():  # readable, of this algorithm and these settings
+                load_pretraining(run_dir, settings_yaml(cfg), algo=cfg.algo.name)
+
+    return check
+
+
+def _claim_seeds(cfg: DictConfig, run_dir: Path, seeds: list[int], claimed: dict, start: float) -> Claim:
+    """A ``seeds=[...]`` run keeps each seed's run in ``seed<k>/``, each claimed on its own (added to
+    ``claimed`` as it is held, with its lock from before); every seed continues from the last step they all have
+    a checkpoint of."""
+    settings = run_dir / "config.yaml"
+    if not settings.is_file() or settings.read_text() != settings_yaml(cfg):  # a resume's are the same
+        settings.write_text(settings_yaml(cfg))
+    resuming = []
+    for seed in seeds:
+        seed_dir = run_dir / f"seed{seed}"
+        stale_lock = _file_state(seed_dir / LOCK_NAME)
+        stored = _stored_pretraining_check(seed_dir, seed_settings(cfg, seed))
+        resuming.append(claim_run_dir(seed_dir, resume=cfg.get("resume", False), check=stored))
+        claimed[seed_dir] = stale_lock
+    checkpoints = common_checkpoints(list(claimed), resuming)
+    return Claim(
+        finished=False,
+        seeds=[
+            (seed_settings(cfg, seed), seed_dir, checkpoint)
+            for seed, seed_dir, checkpoint in zip(seeds, claimed, checkpoints, strict=True)
+        ],
+        vectorised=True,
+        start=start,
+    )
 
 
 def _stored_pretraining_check(run_dir: Path, cfg: DictConfig):
@@ -198,57 +241,87 @@ def _probe_checkpoint_folder(run_dir: Path) -> None:
         raise RunDirError(f"{probe.parent}: cannot write checkpoints there ({err})") from None
 
 
-def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: float) -> SeedRun:
+def open_runs(claim: Claim) -> list[RunInputs]:
+    """Input of Algorithm 1 for every seed of ``claim`` (:func:`open_run`), each seed's data loaded and its resume
+    checked before any seed's files are written: a refused seed (a stored pre-training of other data) leaves every
+    seed's run directory as it was."""
+    loaded = [_load(cfg, run_dir, checkpoint, claim.start) for cfg, run_dir, checkpoint in claim.seeds]
+    return [_record(one) for one in loaded]
+
+
+def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: float) -> RunInputs:
     """Input of Algorithm 1 for one seed: D_S, D_P, D_U and D_0 in their buffers, the evaluator, the logger, and
     ``results.json`` (or, resuming from ``checkpoint``, its state and results, and the run's stored pre-training
     written back into the buffers: :mod:`spoil_torchrl.runs.pretraining`). A resume that is refused (other
     settings, a damaged file, other data) changes nothing in the run directory."""
+    return _record(_load(cfg, run_dir, checkpoint, start))
+
+
+@dataclass(frozen=True)
+class _Loaded:
+    """One seed's run as loaded and checked, before anything is written into its directory."""
+
+    cfg: DictConfig
+    run_dir: Path
+    config_yaml: str
+    state: dict | None
+    stored: Pretraining | None
+    data: object
+    norm: object
+    buffers: DualDemoBuffers
+    data_seconds: float
+    evaluator: Evaluator
+    random_state: torch.Tensor
+    start: float
+
+
+def _load(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: float) -> _Loaded:
+    """Load one seed's run (its data in buffers, the checkpoint and stored pre-training it continues from, the
+    evaluator) and check everything a resume can be refused for; writes nothing into the run directory."""
     torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.seed))
     config_yaml = settings_yaml(cfg)
-    state, stored = None, None
-    if checkpoint is not None:  # the checkpoint of an evaluation, made with the same settings
-        state = load_checkpoint(checkpoint)
-        check_resumable(state, config_yaml, run_dir)
-        if (run_dir / PRETRAINING_NAME).is_file():  # else a run from before pre-trainings were stored
-            stored = load_pretraining(run_dir, config_yaml, algo=cfg.algo.name)
+    state, stored = _resumed_from(cfg, run_dir, checkpoint, config_yaml)
     task = get_env_task(cfg.task.env_id)
-    train = cfg.train
-    if train.checkpoint:
+    if cfg.train.checkpoint:
         _probe_checkpoint_folder(run_dir)
-
-    # Input: D_S, D_P, D_U (episode ids of one dataset) and the initial states D_0.
-    # (an algorithm that needs another role, e.g. SafeDICE's non-preferred D_N, lists it in algo.extra_roles)
-    data = prepare_dataset(
-        cfg.dataset,
-        env_id=task.env_id,
-        seed=int(cfg.seed),
-        progress=cfg.progress,
-        extra_roles=tuple(cfg.algo.get("extra_roles", ())),
-    )
-    # States standardised once with D_U's statistics: every network reads them, the saved policy carries them.
-    norm = (
-        fit_observation_normalizer(data.episodes, data.roles["unlabeled"])
-        if cfg.normalize_observations
-        else None
-    )
-    episodes = data.episodes if norm is None else standardize_observations(data.episodes, norm)
-    buffers = DualDemoBuffers(episodes, data.roles, batch_size=int(train.batch_size), seed=int(cfg.seed))
+    data, norm, buffers = _load_buffers(cfg, task.env_id)
     if stored is not None:  # the resumed run's pre-training, as stored, on the same data
         check_same_data(run_dir / PRETRAINING_NAME, stored[1], buffers)
         stored[0].apply(buffers)
-    (run_dir / "config.yaml").write_text(config_yaml)
     data_seconds = time.perf_counter() - start
     evaluator = Evaluator(  # built (and its settings checked) before any training
         task.env_id,
         cost_threshold=data.cost_threshold,
         return_range=data.return_range,
-        episodes=int(train.eval_episodes),
+        episodes=int(cfg.train.eval_episodes),
         seed=10_000 + int(cfg.seed),
         num_envs=int(cfg.task.eval_num_envs),
         frames=bool(OmegaConf.select(cfg, "eval.frames", default=False)),
     )
-    # TorchRL logger, labelled by dataset / algo / seed, with the settings as hyper-parameters
+    stored = None if stored is None else stored[0]
+    return _Loaded(
+        cfg,
+        run_dir,
+        config_yaml,
+        state,
+        stored,
+        data,
+        norm,
+        buffers,
+        data_seconds,
+        evaluator,
+        torch.get_rng_state(),
+        start,
+    )
+
+
+def _record(run: _Loaded) -> RunInputs:
+    """Start writing a loaded run's record: ``config.yaml``, the TorchRL logger (labelled by dataset / algo /
+    seed, the settings as hyper-parameters) and ``results.json`` (a resumed run's from its checkpoint, its logs
+    cut back to the checkpoint's rows)."""
+    cfg, run_dir, state = run.cfg, run.run_dir, run.state
+    (run_dir / "config.yaml").write_text(run.config_yaml)
     logger, tracking = make_logger(
         OmegaConf.to_container(cfg, resolve=True),
         run_dir / "logs",
@@ -259,12 +332,57 @@ def open_run(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: flo
         results.setdefault("resumed_at", []).append(int(state["step"]))
         trim_csv_logs(run_dir / "logs", state["csv_rows"])
     else:
-        results = _new_results(cfg, task.env_id, config_yaml, data.summary(), data_seconds, tracking)
+        env_id, summary = get_env_task(cfg.task.env_id).env_id, run.data.summary()
+        results = _new_results(cfg, env_id, run.config_yaml, summary, run.data_seconds, tracking)
     write_json(run_dir / "results.json", results)
-    seed_run = SeedRun(cfg, run_dir, results, buffers, evaluator, logger, norm, data.metadata, state, start)
-    seed_run.pretraining = None if stored is None else stored[0]
-    seed_run.random_state = torch.get_rng_state()
-    return seed_run
+    return RunInputs(
+        cfg,
+        run_dir,
+        results,
+        run.buffers,
+        run.evaluator,
+        logger,
+        run.norm,
+        run.data.metadata,
+        state,
+        run.start,
+        random_state=run.random_state,
+        stored=run.stored,
+    )
+
+
+def _resumed_from(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, config_yaml: str):
+    """The checkpoint's content and the stored pre-training (with its record) a resumed run continues from,
+    both checked against the settings; ``(None, None)`` for a run that starts, ``(state, None)`` for a run from
+    before pre-trainings were stored."""
+    if checkpoint is None:
+        return None, None
+    state = load_checkpoint(checkpoint)  # the checkpoint of an evaluation, made with the same settings
+    check_resumable(state, config_yaml, run_dir)
+    if not (run_dir / PRETRAINING_NAME).is_file():
+        return state, None
+    return state, load_pretraining(run_dir, config_yaml, algo=cfg.algo.name)
+
+
+def _load_buffers(cfg: DictConfig, env_id: str):
+    """The dataset's roles in their replay buffers, states standardised with D_U's statistics (every network
+    reads them, the saved policy carries them); returns the prepared data, the statistics and the buffers."""
+    # (an algorithm that needs another role, e.g. SafeDICE's non-preferred D_N, lists it in algo.extra_roles)
+    data = prepare_dataset(
+        cfg.dataset,
+        env_id=env_id,
+        seed=int(cfg.seed),
+        progress=cfg.progress,
+        extra_roles=tuple(cfg.algo.get("extra_roles", ())),
+    )
+    norm = (
+        fit_observation_normalizer(data.episodes, data.roles["unlabeled"])
+        if cfg.normalize_observations
+        else None
+    )
+    episodes = data.episodes if norm is None else standardize_observations(data.episodes, norm)
+    buffers = DualDemoBuffers(episodes, data.roles, batch_size=int(cfg.train.batch_size), seed=int(cfg.seed))
+    return data, norm, buffers
 
 
 def _new_results(
@@ -290,76 +408,83 @@ def _new_results(
     return results
 
 
-def pretrain(seed_run: SeedRun) -> None:
+def pretrain(inputs: RunInputs) -> PretrainedRun:
     """Pre-train what the algorithm needs (SpoilDICE: C_P, C_S, support cut, annotated D_U), from the seed's own
     random stream, store it in the run directory (with ``train.checkpoint``) and build the main stage on it. A
     resumed run builds its main stage on the pre-training it stored (:func:`open_run` wrote it back into the
     buffers) and trains nothing; a run from before pre-trainings were stored computes it again and checks that
-    it reproduces the checkpoint's."""
-    cfg, results, buffers, state = seed_run.cfg, seed_run.results, seed_run.buffers, seed_run.state
-    task = get_env_task(cfg.task.env_id)
-    torch.set_rng_state(seed_run.random_state)
-    pools = segment_pools(seed_run.metadata) if "segments" in seed_run.metadata else None
-    context = BuildContext(
-        buffers,
-        task.observation_dim,
-        task.action_dim,
-        # the dataset's episode-cost threshold over the task's horizon (read by COptiDICE and FBC's oracle)
-        constraint=EpisodeConstraint(seed_run.evaluator.cost_threshold, task.episode_length),
-        logger=seed_run.logger if state is None else None,
-        progress=cfg.progress,
-    )
+    it reproduces the checkpoint's. Returns the run ready for its main stage."""
+    cfg, results, state = inputs.cfg, inputs.results, inputs.checkpoint
+    torch.set_rng_state(inputs.random_state)
+    context = _build_context(inputs)
     algorithm = ALGORITHMS[cfg.algo.name]
-    stored = seed_run.pretraining is not None  # loaded, its data and settings checked (open_run)
-    if not stored:
-        _pretrain_and_store(seed_run, algorithm, context)
-    training = replace(
-        algorithm.main(cfg.algo, context, seed_run.pretraining), observation_norm=seed_run.norm
-    )
-    fingerprint = pretraining_fingerprint(buffers, training.diagnostics)
+    pretraining = inputs.stored  # loaded, its data and settings checked (open_run)
+    if pretraining is None:
+        pretraining = _pretrain_and_store(inputs, algorithm, context)
+    training = replace(algorithm.main(cfg.algo, context, pretraining), observation_norm=inputs.norm)
+    fingerprint = pretraining_fingerprint(inputs.buffers, training.diagnostics)
     # a pre-training computed again must reproduce the run's; a stored one is the run's (the main stage's own
     # float32 statistics, e.g. DemoDICE's reward mean, may round differently on another CPU)
-    if state is not None and not stored and fingerprint != state["pretraining"]:
+    if state is not None and inputs.stored is None and fingerprint != state["pretraining"]:
         raise CheckpointError(
-            f"{seed_run.run_dir}: pre-training did not reproduce the run's (another machine, library version or "
+            f"{inputs.run_dir}: pre-training did not reproduce the run's (another machine, library version or "
             "dataset file?), so it cannot continue exactly; start a new run"
         )
     if state is None:
-        results.update(
-            diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - seed_run.start
-        )
+        results.update(diagnostics=training.diagnostics, pretrain_seconds=time.perf_counter() - inputs.start)
     # where the main stage runs from here, after how long: data and pre-training, or data and loading it
-    step, setup = 0 if state is None else state["step"], time.perf_counter() - seed_run.start
+    step, setup = 0 if state is None else state["step"], time.perf_counter() - inputs.start
     note_where(results, current_machine(), "main", step, setup_seconds=setup)
-    # Diagnostics (never read by training): D_P's support estimate once, and a fixed subsample of the DICE
-    # role on which (nu, lambda) are examined at every evaluation.
-    support = performant_support(buffers, pools)
+    probe = _diagnostics_probe(inputs, training)
+    return PretrainedRun(  # with where the main stage starts drawing
+        inputs, pretraining, training, fingerprint, probe, random_state=torch.get_rng_state()
+    )
+
+
+def _build_context(inputs: RunInputs) -> BuildContext:
+    """What the algorithm's stages are built from: the buffers, the task's dimensions and episode constraint."""
+    task = get_env_task(inputs.cfg.task.env_id)
+    return BuildContext(
+        inputs.buffers,
+        task.observation_dim,
+        task.action_dim,
+        # the dataset's episode-cost threshold over the task's horizon (read by COptiDICE and FBC's oracle)
+        constraint=EpisodeConstraint(inputs.evaluator.cost_threshold, task.episode_length),
+        logger=inputs.logger if inputs.checkpoint is None else None,
+        progress=inputs.cfg.progress,
+    )
+
+
+def _diagnostics_probe(inputs: RunInputs, training: PolicyTraining) -> DiceProbe | None:
+    """Diagnostics (never read by training): D_P's support estimate once, into ``results``, and for a DICE
+    method a fixed subsample of its role on which (nu, lambda) are examined at every evaluation."""
+    pools = segment_pools(inputs.metadata) if "segments" in inputs.metadata else None
+    support = performant_support(inputs.buffers, pools)
     if support is not None:
-        results["performant_support"] = support
-    extras = {"pools": pools, "support": support}
-    if training.dice is not None:
-        extras["probe"] = subsample(buffers[training.dice_role].storage[:], seed=int(cfg.seed))
-        extras["probe_init"] = buffers["init"].storage[:]
-    seed_run.training, seed_run.fingerprint, seed_run.extras = training, fingerprint, extras
-    seed_run.random_state = torch.get_rng_state()  # where the main stage starts drawing
+        inputs.results["performant_support"] = support
+    if training.dice is None:
+        return None
+    transitions = subsample(inputs.buffers[training.dice_role].storage[:], seed=int(inputs.cfg.seed))
+    return DiceProbe(pools, support, transitions, inputs.buffers["init"].storage[:])
 
 
-def _pretrain_and_store(seed_run: SeedRun, algorithm: Algorithm, context: BuildContext) -> None:
+def _pretrain_and_store(inputs: RunInputs, algorithm: Algorithm, context: BuildContext) -> Pretraining:
     """The algorithm's pre-training, computed; a new run with checkpoints stores it (a resume loads it)."""
-    cfg, fresh = seed_run.cfg, seed_run.state is None
+    cfg, fresh = inputs.cfg, inputs.checkpoint is None
     store = fresh and bool(cfg.train.checkpoint)
-    data = data_fingerprint(seed_run.buffers) if store else ""  # before the pre-training annotates them
-    seed_run.pretraining = algorithm.pretrain(cfg.algo, context)
+    data = data_fingerprint(inputs.buffers) if store else ""  # before the pre-training annotates them
+    pretraining = algorithm.pretrain(cfg.algo, context)
     machine = current_machine()
     if store:
-        config_yaml = (seed_run.run_dir / "config.yaml").read_text()
+        config_yaml = (inputs.run_dir / "config.yaml").read_text()
         save_pretraining(
-            seed_run.run_dir,
-            seed_run.pretraining,
+            inputs.run_dir,
+            pretraining,
             config_yaml=config_yaml,
             data=data,
             algo=cfg.algo.name,
             machine=machine,
         )
     if fresh:
-        note_where(seed_run.results, machine, "pre-training")
+        note_where(inputs.results, machine, "pre-training")
+    return pretraining

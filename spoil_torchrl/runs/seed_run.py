@@ -1,8 +1,15 @@
-"""One seed's run of the main recipe: what it holds (:class:`SeedRun`) and the bookkeeping every run does the
-same way, alone or as one of the seeds of a ``seeds=[...]`` run: evaluate the policy and rewrite
-``results.json`` (:func:`evaluate`), checkpoint (:func:`save_state`), write its MCAP file
-(:func:`rollout_writer`), record why it stopped (:func:`recorded_failure`) and finish with the paper's aggregate
-(:func:`finish`). The recipe (``recipes/spoildice_dsrl.py``) reads like Algorithm 1 and calls these.
+"""One seed's run of the main recipe as the values its stages return, and the bookkeeping every run does the
+same way, alone or as one of the seeds of a ``seeds=[...]`` run.
+
+A run's stages hand each other immutable values: :func:`~spoil_torchrl.runs.lifecycle.open_run` returns
+:class:`RunInputs` (settings, directory, data, evaluator, logger, the checkpoint it continues from),
+:func:`~spoil_torchrl.runs.lifecycle.pretrain` returns a :class:`PretrainedRun` (those inputs plus the
+algorithm's pre-training and the main stage built on it), and the main stage
+(:func:`~spoil_torchrl.runs.training.train`) reads one of those and returns ``results.json``'s content. No
+stage changes another's value; the one record every stage adds to is ``results`` (``results.json``'s content,
+rewritten as the run goes). The functions here evaluate the policy and rewrite ``results.json``
+(:func:`evaluate`), checkpoint (:func:`save_state`), write the MCAP file (:func:`rollout_writer`), record why a
+run stopped (:func:`recorded_failure`) and finish with the paper's aggregate (:func:`finish`).
 """
 
 from __future__ import annotations
@@ -12,7 +19,8 @@ import copy
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -45,10 +53,26 @@ log = logging.getLogger(__name__)
 PREVIOUS_CHECKPOINT = "checkpoints/training_state.previous.pt"
 
 
-@dataclass
-class SeedRun:
-    """One seed's run: its settings, directory, data, evaluator, logger and ``results.json`` content, and, once
-    the recipe has pre-trained it, the algorithm's training (``training``) and the diagnostics' fixed inputs."""
+@dataclass(frozen=True)
+class RunInputs:
+    """One seed's run as :func:`~spoil_torchrl.runs.lifecycle.open_run` loads it: the input of Algorithm 1.
+
+    Attributes:
+        cfg: the seed's settings.
+        run_dir: its run directory.
+        results: ``results.json``'s content, the run's record (each stage adds its part and rewrites the file).
+        buffers: D_S, D_P, D_U and D_0 (and any extra role), states standardised. The pre-training adds its
+            annotation columns to them (Algorithm 1 annotates D_U once); it changes no column they had.
+        evaluator: rolls the policy out in the task.
+        logger: the TorchRL logger (``None``: none).
+        norm: the observation statistics (``None``: not standardised).
+        metadata: the dataset's metadata.
+        checkpoint: the checkpoint's content the run continues from (``None``: it starts).
+        start: when the run started (``time.perf_counter``).
+        random_state: torch's random state once the run is open (where its pre-training starts drawing).
+        stored: the pre-training the run stored, loaded on resume and written back into ``buffers``
+            (``None``: computed by :func:`~spoil_torchrl.runs.lifecycle.pretrain`).
+    """
 
     cfg: DictConfig
     run_dir: Path
@@ -57,35 +81,76 @@ class SeedRun:
     evaluator: Evaluator
     logger: object
     norm: object
-    metadata: dict
-    state: dict | None  # the checkpoint continued from (resume), else None
+    metadata: Mapping
+    checkpoint: dict | None
     start: float
-    random_state: torch.Tensor | None = None  # torch's generator where this seed's run has got to
-    pretraining: Pretraining | None = None  # the algorithm's pre-training (stored by the run, or loaded)
-    training: PolicyTraining | None = None
-    fingerprint: str = ""
-    extras: dict = field(default_factory=dict)  # pools, support estimate, diagnostics' probe
+    random_state: torch.Tensor
+    stored: Pretraining | None = None
+
+
+@dataclass(frozen=True)
+class DiceProbe:
+    """The fixed inputs of the DICE diagnostics (never read by training): the segments' pools, D_P's support
+    estimate against the true cost, and a fixed subsample of the DICE role plus D_0 on which (nu, lambda) are
+    examined at every evaluation."""
+
+    pools: Mapping | None
+    support: dict | None
+    transitions: object
+    initial: object
+
+
+@dataclass(frozen=True)
+class PretrainedRun:
+    """One seed's run once :func:`~spoil_torchrl.runs.lifecycle.pretrain` has run: its inputs, the algorithm's
+    pre-training (computed, or the stored one), the main stage built on it, the pre-training's fingerprint
+    (checkpointed, for runs from before pre-trainings were stored), the DICE diagnostics' probe (``None`` for
+    methods without a DICE dual) and torch's random state where the main stage starts drawing."""
+
+    inputs: RunInputs
+    pretraining: Pretraining
+    training: PolicyTraining
+    fingerprint: str
+    probe: DiceProbe | None
+    random_state: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Clock:
+    """The main stage's clocks (``time.perf_counter``), a resumed run's shifted by the time before its
+    checkpoint: ``run`` counts ``total_seconds``, ``train`` counts ``train_seconds``."""
+
+    run: float
+    train: float
+
+
+def main_stage_clock(inputs: RunInputs) -> Clock:
+    """The main stage's clocks, started now (a resumed run counts the time before its checkpoint)."""
+    state, now = inputs.checkpoint, time.perf_counter()
+    if state is None:
+        return Clock(inputs.start, now)
+    return Clock(inputs.start - state["total_seconds"], now - state["train_seconds"])
 
 
 @contextlib.contextmanager
-def recorded_failure(runs: list[SeedRun]):
+def recorded_failure(runs: list[RunInputs]):
     """Keep what was done: on any error or interruption every run's ``results.json`` says why it stopped."""
     try:
         yield
     except BaseException as err:
-        for seed_run in runs:
-            seed_run.results["status"] = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
-            seed_run.results["error"] = f"{type(err).__name__}: {err}"
-            write_json(seed_run.run_dir / "results.json", seed_run.results)
+        for inputs in runs:
+            inputs.results["status"] = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
+            inputs.results["error"] = f"{type(err).__name__}: {err}"
+            write_json(inputs.run_dir / "results.json", inputs.results)
         raise
 
 
-def note_precision(runs: list[SeedRun]) -> None:
+def note_precision(runs: list[RunInputs]) -> None:
     """Record the matmul precision training runs at, and its measured error, in every run's results."""
     error = matmul_check()  # as this machine computes them
-    for seed_run in runs:
-        seed_run.results["matmul_precision"] = torch.get_float32_matmul_precision()
-        seed_run.results["matmul_relative_error"] = error
+    for inputs in runs:
+        inputs.results["matmul_precision"] = torch.get_float32_matmul_precision()
+        inputs.results["matmul_relative_error"] = error
 
 
 def performant_support(buffers, pools) -> dict | None:
@@ -99,17 +164,17 @@ def performant_support(buffers, pools) -> dict | None:
     return support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
 
 
-def rollout_job(seed_run: SeedRun) -> Job:
+def rollout_job(run: PretrainedRun) -> Job:
     """The evaluation rollout of the seed's current policy (a copy) as a job for a
     :class:`~spoil_torchrl.data.parallel.RolloutPool`."""
-    with seed_run.training.policy() as policy:
-        return seed_run.evaluator.rollout_job(copy.deepcopy(policy))
+    with run.training.policy() as policy:
+        return run.inputs.evaluator.rollout_job(copy.deepcopy(policy))
 
 
 def evaluate(
-    seed_run: SeedRun,
+    run: PretrainedRun,
     step: int,
-    train_start: float,
+    clock: Clock,
     rollout: dict | None = None,
     started: float | None = None,
 ) -> dict:
@@ -121,88 +186,92 @@ def evaluate(
     (a ``seeds=[...]`` run counts from the previous seed's end: the rollouts its main process ran fall to the
     first seed, and the seeds' times add up to the round's).
     """
-    cfg, results, training = seed_run.cfg, seed_run.results, seed_run.training
+    inputs, training = run.inputs, run.training
     evaluation_start = time.perf_counter() if started is None else started
     with training.policy() as policy:
         for name, weight in policy.named_parameters():  # a diverged policy is never evaluated
             check_finite(f"policy weight {name}", weight.detach(), f"step {step}", DIVERGED_ADVICE)
-        result = (
-            seed_run.evaluator(policy, step) if rollout is None else seed_run.evaluator.report(rollout, step)
-        )
-        if cfg.train.checkpoint:
-            save_policy(
-                seed_run.run_dir / "checkpoints" / "policy.pt",
-                policy,
-                env_id=cfg.task.env_id,
-                distribution=cfg.algo.distribution,
-                info={"step": step, "algo": cfg.algo.name, "config_hash": results["config_hash"]},
-            )
-    if training.dice is not None:
-        x = seed_run.extras
-        dice = dice_diagnostics(
-            training.dice, x["probe"], x["probe_init"], role=training.dice_role, pools=x["pools"]
-        )
-        result["dice"] = summary_scalars(dice)
-        results.update(dice_diagnostics=dice, dice_report=explain(dice, x["support"]))
-        if seed_run.logger is not None:
-            for key, value in result["dice"].items():
-                seed_run.logger.log_scalar(key, value, step=step)
-    result["seconds"] = time.perf_counter() - train_start
+        evaluator = inputs.evaluator
+        result = evaluator(policy, step) if rollout is None else evaluator.report(rollout, step)
+        if inputs.cfg.train.checkpoint:
+            _save_policy_file(inputs, policy, step)
+    if run.probe is not None:
+        result["dice"] = _dice_diagnostics(run, step)
+    result["seconds"] = time.perf_counter() - clock.train
     result["eval_seconds"] = time.perf_counter() - evaluation_start  # rollouts, policy file, diagnostics
-    results["evaluations"].append(result)
-    write_json(seed_run.run_dir / "results.json", results)
+    inputs.results["evaluations"].append(result)
+    write_json(inputs.run_dir / "results.json", inputs.results)
     return result
 
 
-def save_state(
-    seed_run: SeedRun, step: int, trainer_state: dict, random_state: dict, train_start: float
-) -> None:
+def _save_policy_file(inputs: RunInputs, policy, step: int) -> None:
+    """The evaluated policy as the run's policy file (``checkpoints/policy.pt``)."""
+    cfg = inputs.cfg
+    save_policy(
+        inputs.run_dir / "checkpoints" / "policy.pt",
+        policy,
+        env_id=cfg.task.env_id,
+        distribution=cfg.algo.distribution,
+        info={"step": step, "algo": cfg.algo.name, "config_hash": inputs.results["config_hash"]},
+    )
+
+
+def _dice_diagnostics(run: PretrainedRun, step: int) -> dict:
+    """The DICE diagnostics of (nu, lambda) on the run's probe, into ``results`` and the logger; returns their
+    summary scalars."""
+    probe, training, inputs = run.probe, run.training, run.inputs
+    dice = dice_diagnostics(
+        training.dice, probe.transitions, probe.initial, role=training.dice_role, pools=probe.pools
+    )
+    inputs.results.update(dice_diagnostics=dice, dice_report=explain(dice, probe.support))
+    scalars = summary_scalars(dice)
+    if inputs.logger is not None:
+        for key, value in scalars.items():
+            inputs.logger.log_scalar(key, value, step=step)
+    return scalars
+
+
+def save_state(run: PretrainedRun, step: int, trainer_state: dict, random_state: dict, clock: Clock) -> None:
     """After an evaluation and its log rows: everything the seed's run needs to continue from here."""
+    inputs = run.inputs
     save_checkpoint(
-        seed_run.run_dir / CHECKPOINT_NAME,
+        inputs.run_dir / CHECKPOINT_NAME,
         {
             "step": step,
-            "config_yaml": (seed_run.run_dir / "config.yaml").read_text(),
+            "config_yaml": (inputs.run_dir / "config.yaml").read_text(),
             "trainer": trainer_state,
             "stepper": trainer_state["optimization_stepper"],
             "rng": random_state,
-            "results": seed_run.results,
-            "pretraining": seed_run.fingerprint,
-            "csv_rows": csv_row_counts(seed_run.run_dir / "logs"),
-            "train_seconds": time.perf_counter() - train_start,
-            "total_seconds": time.perf_counter() - seed_run.start,
+            "results": inputs.results,
+            "pretraining": run.fingerprint,
+            "csv_rows": csv_row_counts(inputs.run_dir / "logs"),
+            "train_seconds": time.perf_counter() - clock.train,
+            "total_seconds": time.perf_counter() - clock.run,
         },
     )
-    write_lock(seed_run.run_dir)  # heartbeat
+    write_lock(inputs.run_dir)  # heartbeat
 
 
-def finish(seed_run: SeedRun, update_step: str, train_start: float) -> dict:
+def finish(run: PretrainedRun, update_step: str, clock: Clock) -> dict:
     """Output: ``results.json`` with the paper's aggregate of the last evaluations."""
-    results = seed_run.results
-    last = min(int(seed_run.cfg.train.last_evaluations), len(results["evaluations"]))
+    inputs = run.inputs
+    results = inputs.results
+    last = min(int(inputs.cfg.train.last_evaluations), len(results["evaluations"]))
     results.update(
         status="finished",
         aggregate=aggregate(results["evaluations"], last),
         last_evaluations=last,
         update_step=update_step,
-        train_seconds=time.perf_counter() - train_start,
-        total_seconds=time.perf_counter() - seed_run.start,
+        train_seconds=time.perf_counter() - clock.train,
+        total_seconds=time.perf_counter() - clock.run,
     )
-    write_json(seed_run.run_dir / "results.json", results)
+    write_json(inputs.run_dir / "results.json", results)
     return results
 
 
-def main_stage_clock(seed_run: SeedRun) -> float:
-    """The main stage's start (a resumed run counts the time before its checkpoint); shifts the run's start."""
-    state = seed_run.state
-    if state is not None:
-        seed_run.start -= state["total_seconds"]
-    return time.perf_counter() - (0.0 if state is None else state["train_seconds"])
-
-
-def rollout_writer(seed_run: SeedRun):
+def rollout_writer(inputs: RunInputs):
     """The seed's MCAP writer: a new file, or the run's file continued after the checkpoint's step."""
-    cfg, results = seed_run.cfg, seed_run.results
+    cfg, results = inputs.cfg, inputs.results
     metadata = {
         "task": cfg.task.env_id,
         "algo": cfg.algo.name,
@@ -210,13 +279,13 @@ def rollout_writer(seed_run: SeedRun):
         "config_hash": results["config_hash"],
     }
     mcap = dict(
-        path=seed_run.run_dir / "rollouts.mcap",
-        cost_threshold=seed_run.evaluator.cost_threshold,
+        path=inputs.run_dir / "rollouts.mcap",
+        cost_threshold=inputs.evaluator.cost_threshold,
         metadata=metadata,
     )
-    if seed_run.state is None:
+    if inputs.checkpoint is None:
         return RolloutWriter(**mcap)
-    return continue_rollouts(**mcap, until_step=seed_run.state["step"])
+    return continue_rollouts(**mcap, until_step=inputs.checkpoint["step"])
 
 
 def evaluation_due(step: int, cfg: DictConfig) -> bool:

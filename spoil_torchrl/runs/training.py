@@ -25,7 +25,8 @@ from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.eval.evaluator import METRICS
 from spoil_torchrl.runs.checkpoint import rng_state, set_rng_state
 from spoil_torchrl.runs.seed_run import (
-    SeedRun,
+    Clock,
+    PretrainedRun,
     evaluate,
     evaluation_due,
     finish,
@@ -65,149 +66,172 @@ class Steps:
     label: Callable[[], str]
 
 
-def one_seed(seed_run: SeedRun) -> Steps:
+def one_seed(run: PretrainedRun) -> Steps:
     """The steps of one seed's run: its own stepper (compiled with ``train.compile``; said and run eagerly
     where it cannot be), its buffers' batches."""
-    stepper = seed_run.training.stepper  # as built (compiled: the same losses and optimisers)
-    if seed_run.cfg.train.compile:  # the whole update as one compiled graph
+    stepper, buffers = (
+        run.training.stepper,
+        run.inputs.buffers,
+    )  # as built (compiled: the same losses, optimisers)
+    if run.inputs.cfg.train.compile:  # the whole update as one compiled graph
         stepper = CompiledStepper.from_stepper(stepper)
 
     def resume(trainer) -> None:
-        state = seed_run.state
+        state = run.inputs.checkpoint
         trainer.load_state_dict(state["trainer"])
         stepper.load_state_dict(state["stepper"])
-        set_rng_state(state["rng"], seed_run.buffers)
+        set_rng_state(state["rng"], buffers)
 
     return Steps(
         stepper,
-        seed_run.buffers.sample,
-        lambda trainer: [(trainer.state_dict(), rng_state(seed_run.buffers))],
+        buffers.sample,
+        lambda trainer: [(trainer.state_dict(), rng_state(buffers))],
         resume,
         lambda: "compiled" if getattr(stepper, "compiled", False) else "eager",
     )
 
 
-def vectorised_seeds(runs: list[SeedRun]) -> Steps:
+def vectorised_seeds(runs: list[PretrainedRun]) -> Steps:
     """The steps of several seeds at once: one vmapped update over their stacked networks
     (:class:`~spoil_torchrl.trainers.vectorized.VectorizedStepper`), each seed drawing from its own buffers and
     random stream, and each checkpointed as its single run would be."""
     stepper = VectorizedStepper(
         [r.training.stepper for r in runs],
         [r.random_state for r in runs],
-        seeds=[int(r.cfg.seed) for r in runs],
-        compile=bool(runs[0].cfg.train.compile),
+        seeds=[int(r.inputs.cfg.seed) for r in runs],
+        compile=bool(runs[0].inputs.cfg.train.compile),
     )
 
     def seed_states(trainer) -> list[tuple[dict, dict]]:
         whole = trainer.state_dict()  # (syncs every seed's stepper)
         states = []
-        for i, seed_run in enumerate(runs):
-            own = seed_run.training.stepper
+        for i, run in enumerate(runs):
+            own = run.training.stepper
             state = whole | {  # the trainer state of this seed's single-seed run
                 "loss_module": nn.ModuleDict(own.losses).state_dict(),
                 "optimization_stepper": own.state_dict(),
             }
-            random = {"torch": stepper.rng_states[i][0], "buffers": seed_run.buffers.rng_state()}
+            random = {"torch": stepper.rng_states[i][0], "buffers": run.inputs.buffers.rng_state()}
             states.append((state, random))
         return states
 
     def resume(trainer) -> None:
+        states = [r.inputs.checkpoint for r in runs]
         seeds_state = {
-            "seeds": [r.state["stepper"] for r in runs],
-            "rng": [(r.state["rng"]["torch"], None) for r in runs],
+            "seeds": [state["stepper"] for state in states],
+            "rng": [(state["rng"]["torch"], None) for state in states],
         }
         trainer.load_state_dict(
-            runs[0].state["trainer"]
+            states[0]["trainer"]
             | {"loss_module": trainer.loss_module.state_dict(), "optimization_stepper": seeds_state}
         )
-        for seed_run in runs:
-            seed_run.buffers.set_rng_state(seed_run.state["rng"]["buffers"])
+        for run, state in zip(runs, states, strict=True):
+            run.inputs.buffers.set_rng_state(state["rng"]["buffers"])
 
     return Steps(
         stepper,
-        lambda: stepper.batch([seed_run.buffers.sample() for seed_run in runs]),
+        lambda: stepper.batch([run.inputs.buffers.sample() for run in runs]),
         seed_states,
         resume,
         lambda: "vectorised, compiled" if stepper.compiled else "vectorised, eager",
     )
 
 
-def train(runs: list[SeedRun], *, vectorised: bool | None = None) -> list[dict]:
+def train(runs: list[PretrainedRun], *, vectorised: bool | None = None) -> list[dict]:
     """The main stage of every seed in ``runs``: one Trainer, each seed evaluated, logged and checkpointed as
     its own run. ``vectorised`` (default: more than one seed) trains them in one vmapped update
     (:func:`vectorised_seeds`), else the one seed with its own stepper (:func:`one_seed`). Returns each seed's
     finished ``results.json`` content."""
-    cfg, train_cfg = runs[0].cfg, runs[0].cfg.train
-    for seed_run in runs:
-        seed_run.results["status"] = "training"
-    starts = [main_stage_clock(seed_run) for seed_run in runs]
+    cfg = runs[0].inputs.cfg
+    for run in runs:
+        run.inputs.results["status"] = "training"
+    clocks = [main_stage_clock(run.inputs) for run in runs]
     vectorised = len(runs) > 1 if vectorised is None else vectorised
     steps = vectorised_seeds(runs) if vectorised else one_seed(runs[0])
     several = f", {len(runs)} seeds" if len(runs) > 1 else ""
     trainer = offline_trainer(
         steps.stepper,
         steps.sample,
-        total_steps=int(train_cfg.steps),
-        steps_per_batch=_steps_per_batch(train_cfg),
+        total_steps=int(cfg.train.steps),
+        steps_per_batch=_steps_per_batch(cfg.train),
         progress_bar=cfg.progress,
         progress_label=f"training {cfg.algo.name}{several}",
     )
+    if runs[0].inputs.checkpoint is not None:  # continue exactly where the checkpoints were taken
+        steps.resume(trainer)
+    with contextlib.ExitStack() as stack:
+        for run in runs:  # every evaluation episode into the seed's MCAP file, flushed per episode
+            run.inputs.evaluator.writer = stack.enter_context(rollout_writer(run.inputs))
+        pool = stack.enter_context(
+            RolloutPool(workers=min(len(runs), available_cores()) - 1, warm_up=ROLLOUT_MODULES)
+        )
+        _register_hooks(trainer, runs, steps, clocks, pool)
+        trainer.train()
+    if hasattr(steps.stepper, "sync"):
+        steps.stepper.sync()
+    return [finish(run, steps.label(), clock) for run, clock in zip(runs, clocks, strict=True)]
+
+
+def _register_hooks(trainer, runs: list[PretrainedRun], steps: Steps, clocks: list[Clock], pool) -> None:
+    """The main stage's hooks, the same for one seed and several: each seed's losses logged every
+    ``train.log_interval`` steps, and every ``train.eval_interval`` steps each seed evaluated (its rollouts on
+    ``pool``'s spare cores too), logged and checkpointed."""
+    train_cfg = runs[0].inputs.cfg.train
+    last_count = [0]  # the step of the last optim_steps row
 
     def log_losses(optim_steps: int, losses) -> None:  # each seed's averages into its own logger
         step, interval = trainer.collected_frames, int(train_cfg.log_interval)
         if losses is not None and step // interval != (step - trainer.optim_steps_per_batch) // interval:
             _log_per_seed(runs, losses, step)
+        if step - last_count[0] > interval:  # the step count, at the TorchRL Trainer's own cadence
+            last_count[0] = step
+            _log_per_seed(runs, {"optim_steps": [float(optim_steps)] * len(runs)}, step)
 
     def evaluate_now(batch) -> None:
         step = trainer.collected_frames
-        if not evaluation_due(step, cfg):
-            return
-        if hasattr(steps.stepper, "sync"):  # every seed's stepper holds its networks, optimiser states again
-            steps.stepper.sync()
-        results, started = [], time.perf_counter()
-        rollouts = pool.map([rollout_job(seed_run) for seed_run in runs])  # on the spare cores too
-        for seed_run, t0 in zip(runs, starts, strict=True):  # a seed's time: from the previous seed's end
-            results.append(evaluate(seed_run, step, t0, next(rollouts), started))
-            started = time.perf_counter()
-        _log_per_seed(runs, {f"eval/{key}": [r[key] for r in results] for key in METRICS}, step)
-        if train_cfg.checkpoint:  # a kill while they are written leaves each seed one of the step before
-            if len(runs) > 1:
-                keep_previous_checkpoints([seed_run.run_dir for seed_run in runs])
-            for seed_run, t0, (state, random) in zip(runs, starts, steps.seed_states(trainer), strict=True):
-                save_state(seed_run, step, state, random, t0)
-        mean = {key: sum(r[key] for r in results) / len(results) for key in METRICS}
-        of = f" (mean of {len(runs)} seeds)" if len(runs) > 1 else ""
-        trainer.progress.note(
-            f"step {step}: feasible return {mean['normalized_feasible_return']:.2f}, "
-            f"cost {mean['normalized_cost']:.2f}{of}"
-        )
+        if evaluation_due(step, runs[0].inputs.cfg):
+            _evaluate_seeds(trainer, runs, steps, clocks, pool, step)
 
     trainer.register_op("post_optim_complete_log", log_losses)
     trainer.register_op("post_steps_log", evaluate_now)
-    if runs[0].state is not None:  # continue exactly where the checkpoints were taken
-        steps.resume(trainer)
-    with contextlib.ExitStack() as stack:
-        for seed_run in runs:  # every evaluation episode into the seed's MCAP file, flushed per episode
-            seed_run.evaluator.writer = stack.enter_context(rollout_writer(seed_run))
-        pool = stack.enter_context(
-            RolloutPool(workers=min(len(runs), available_cores()) - 1, warm_up=ROLLOUT_MODULES)
-        )
-        trainer.train()
-    if hasattr(steps.stepper, "sync"):
+
+
+def _evaluate_seeds(trainer, runs: list[PretrainedRun], steps: Steps, clocks: list[Clock], pool, step: int):
+    """Evaluate, log and checkpoint every seed after ``step`` steps; say the seeds' mean on the progress bar."""
+    if hasattr(steps.stepper, "sync"):  # every seed's stepper holds its networks, optimiser states again
         steps.stepper.sync()
-    return [finish(seed_run, steps.label(), t0) for seed_run, t0 in zip(runs, starts, strict=True)]
+    results, started = [], time.perf_counter()
+    rollouts = pool.map([rollout_job(run) for run in runs])  # on the spare cores too
+    for run, clock in zip(runs, clocks, strict=True):  # a seed's time: from the previous seed's end
+        results.append(evaluate(run, step, clock, next(rollouts), started))
+        started = time.perf_counter()
+    _log_per_seed(runs, {f"eval/{key}": [r[key] for r in results] for key in METRICS}, step)
+    if runs[
+        0
+    ].inputs.cfg.train.checkpoint:  # a kill while they are written leaves each seed one of the step before
+        if len(runs) > 1:
+            keep_previous_checkpoints([run.inputs.run_dir for run in runs])
+        for run, clock, (state, random) in zip(runs, clocks, steps.seed_states(trainer), strict=True):
+            save_state(run, step, state, random, clock)
+    mean = {key: sum(r[key] for r in results) / len(results) for key in METRICS}
+    of = f" (mean of {len(runs)} seeds)" if len(runs) > 1 else ""
+    trainer.progress.note(
+        f"step {step}: feasible return {mean['normalized_feasible_return']:.2f}, "
+        f"cost {mean['normalized_cost']:.2f}{of}"
+    )
 
 
-def _log_per_seed(runs: list[SeedRun], values, step: int) -> None:
+def _log_per_seed(runs: list[PretrainedRun], values, step: int) -> None:
     """Log ``values`` (key -> one value per seed: a list, or a tensor of shape ``[seeds]`` or ``[]``) into
     each seed's own logger at ``step``."""
-    for i, seed_run in enumerate(runs):
-        if seed_run.logger is not None:
+    for i, run in enumerate(runs):
+        logger = run.inputs.logger
+        if logger is not None:
             for key, value in values.items():
                 one = value[i] if isinstance(value, list) else value.reshape(-1)[i]
-                seed_run.logger.log_scalar(key, float(one), step=step)
+                logger.log_scalar(key, float(one), step=step)
 
 
-def train_one(seed_run: SeedRun) -> dict:
+def train_one(run: PretrainedRun) -> dict:
     """:func:`train` for one seed's run; returns its finished ``results.json`` content."""
-    return train([seed_run])[0]
+    return train([run])[0]

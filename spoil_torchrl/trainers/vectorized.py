@@ -164,6 +164,40 @@ def _copy(value):
     return value.clone() if torch.is_tensor(value) else value
 
 
+def _check_steppers(steppers: Sequence, rng_states: Sequence, seeds: Sequence[int] | None) -> list[int]:
+    """The seeds' names (default ``0, 1, ...``), once there is a stepper, a name and a random state per seed and
+    no learning-rate schedule."""
+    if not steppers:
+        raise ValueError("VectorizedStepper needs at least one stepper")
+    seeds = list(range(len(steppers))) if seeds is None else list(seeds)
+    if len(seeds) != len(steppers) or len(rng_states) != len(steppers):
+        raise ValueError("one seed name and one random state per stepper")
+    if any(s.schedulers for s in steppers):
+        raise NotVectorizable("learning-rate schedules are not vectorised")
+    return seeds
+
+
+def _stack_optimizers(
+    steppers: Sequence[MultiLossStepper], params: Mapping[str, Mapping[str, torch.Tensor]]
+) -> list[_StackedOptimizer]:
+    """Each optimiser of the seeds (the ``j``-th of every seed) as one optimiser over the stacked parameters
+    ``params`` (loss name -> parameter name -> stacked leaf)."""
+    stacked_of = [  # per seed: id(the seed's parameter) -> the stacked parameter
+        {id(p): params[name][key] for name, ps in step_parameters(s.losses).items() for key, p in ps.items()}
+        for s in steppers
+    ]
+    if len({len(s.optimizers) for s in steppers}) != 1:
+        raise NotVectorizable("the seeds have different numbers of optimisers")
+    for i in range(len(steppers)):
+        stepped = (p for o in steppers[i].optimizers for g in _inner(o).param_groups for p in g["params"])
+        if any(id(p) not in stacked_of[i] for p in stepped):
+            raise NotVectorizable("an optimiser steps a parameter that no loss's terms differentiate")
+    return [
+        _StackedOptimizer([s.optimizers[j] for s in steppers], stacked_of)
+        for j in range(len(steppers[0].optimizers))
+    ]
+
+
 class VectorizedStepper(MultiLossStepper):
     """The steps of several seeds' steppers as one vmapped (and compiled) update.
 
@@ -205,13 +239,7 @@ class VectorizedStepper(MultiLossStepper):
         compile: bool = True,
         mode: str | None = None,
     ) -> None:
-        if not steppers:
-            raise ValueError("VectorizedStepper needs at least one stepper")
-        self.seeds = list(range(len(steppers))) if seeds is None else list(seeds)
-        if len(self.seeds) != len(steppers) or len(rng_states) != len(steppers):
-            raise ValueError("one seed name and one random state per stepper")
-        if any(s.schedulers for s in steppers):
-            raise NotVectorizable("learning-rate schedules are not vectorised")
+        self.seeds = _check_steppers(steppers, rng_states, seeds)
         try:
             self.earlier = [pure_losses(s.losses) for s in steppers]
         except NotCompilable as err:
@@ -223,31 +251,7 @@ class VectorizedStepper(MultiLossStepper):
             name: {key: self._seeds_values(name, key) for key in names[name].term_parameters()}
             for name in names
         }
-        stacked_of = [  # per seed: id(the seed's parameter) -> the stacked parameter
-            {
-                id(p): self.params[name][key]
-                for name, ps in step_parameters(s.losses).items()
-                for key, p in ps.items()
-            }
-            for s in steppers
-        ]
-        counts = {len(s.optimizers) for s in steppers}
-        if len(counts) != 1:
-            raise NotVectorizable("the seeds have different numbers of optimisers")
-        for i in range(len(steppers)):
-            missing = [
-                p
-                for o in steppers[i].optimizers
-                for g in _inner(o).param_groups
-                for p in g["params"]
-                if id(p) not in stacked_of[i]
-            ]
-            if missing:
-                raise NotVectorizable("an optimiser steps a parameter that no loss's terms differentiate")
-        self.stacked = [
-            _StackedOptimizer([s.optimizers[j] for s in steppers], stacked_of)
-            for j in range(len(steppers[0].optimizers))
-        ]
+        self.stacked = _stack_optimizers(steppers, self.params)
         use_fused_adam([o.optimizer for o in self.stacked])  # as the compiled single-seed step
         super().__init__(
             {

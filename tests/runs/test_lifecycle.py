@@ -3,13 +3,15 @@ compose API, as docs/usage.md shows it."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
+import pytest
 from hydra import compose, initialize_config_dir
 
 from spoil_torchrl.runs.directory import LOCK_NAME
-from spoil_torchrl.runs.lifecycle import claim_runs, open_run, pretrain
+from spoil_torchrl.runs.lifecycle import claim_runs, open_runs, pretrain
 from spoil_torchrl.runs.seed_run import recorded_failure
 from spoil_torchrl.runs.training import train_one
 
@@ -36,12 +38,16 @@ def test_a_recipe_of_ones_own_trains_and_finishes_a_run(tmp_path, tiny_pc1_datas
     with claim_runs(cfg, tmp_path) as claim:
         assert not claim.finished and not claim.vectorised
         assert (tmp_path / LOCK_NAME).is_file()  # held while the block runs
-        runs = [open_run(*seed, claim.start) for seed in claim.seeds]
+        runs = open_runs(claim)
         with recorded_failure(runs):
-            for seed_run in runs:
-                pretrain(seed_run)
-            assert runs[0].training.diagnostics["support_share_performant"] > 0  # FBC's cut, pre-trained
-            results = train_one(runs[0])
+            pretrained = [pretrain(inputs) for inputs in runs]
+            assert pretrained[0].training.diagnostics["support_share_performant"] > 0  # FBC's cut
+            assert pretrained[0].inputs is runs[0]  # the stage's value holds the inputs it was given
+            with pytest.raises(dataclasses.FrozenInstanceError):  # no stage changes another's value
+                runs[0].checkpoint = {}
+            with pytest.raises(dataclasses.FrozenInstanceError):
+                pretrained[0].training = None
+            results = train_one(pretrained[0])
     assert not (tmp_path / LOCK_NAME).exists()  # released at the end of the block
     on_disk = json.loads((tmp_path / "results.json").read_text())
     assert results["status"] == on_disk["status"] == "finished" and on_disk["algo"] == "fbc"
