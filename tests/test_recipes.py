@@ -269,6 +269,7 @@ def test_dataset_configs_select_their_evaluation_task():
             ("point_circle1_controlled", "SafetyPointCircle1-v0"),
             ("half_cheetah_velocity_controlled", "SafetyHalfCheetahVelocity-v1"),
             ("hopper_velocity_controlled", "SafetyHopperVelocity-v1"),
+            ("walker2d_velocity_controlled", "SafetyWalker2dVelocity-v1"),
         ]:
             cfg = compose(config_name="spoildice_dsrl", overrides=[f"dataset={dataset}"])
             assert cfg.task.env_id == env_id, dataset

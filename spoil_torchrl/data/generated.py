@@ -18,6 +18,8 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
   of 1,000 steps).
 * ``hopper-velocity-controlled`` -- the same four pools for SafetyHopperVelocity-v1 (2,000 episodes of at most
   1,000 steps: a hopper that falls ends its episode).
+* ``walker2d-velocity-controlled`` -- the same four pools for SafetyWalker2dVelocity-v1 (2,000 episodes of at
+  most 1,000 steps).
 """
 
 from __future__ import annotations
@@ -112,6 +114,12 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             "SafetyHopperVelocity-v1",
             _typed(500),
             "controlled HopperVelocity pools: 500 episodes of each policy type (paper F.2)",
+        ),
+        GeneratedDataset(
+            "walker2d-velocity-controlled",
+            "SafetyWalker2dVelocity-v1",
+            _typed(500),
+            "controlled Walker2dVelocity pools: 500 episodes of each policy type (paper F.2)",
         ),
     ]
 }
