@@ -1,16 +1,34 @@
-"""Environments: Safety-Gymnasium tasks as TorchRL envs with a cost entry."""
+"""Environments: Safety-Gymnasium tasks as TorchRL envs with a cost entry.
 
-from spoil_torchrl.envs.compat import applied_patches, import_safety_gymnasium
-from spoil_torchrl.envs.fast_reset import enable_fast_reset, fast_reset_enabled
-from spoil_torchrl.envs.safety import CostInInfo, log_mujoco_warnings, make_env, make_safety_gymnasium
+The names are loaded on first use, so that ``spoil_torchrl.envs.compat`` (the import-time fixes of
+Safety-Gymnasium) loads without torch and TorchRL.
+"""
 
-__all__ = [
-    "CostInInfo",
-    "applied_patches",
-    "enable_fast_reset",
-    "fast_reset_enabled",
-    "import_safety_gymnasium",
-    "log_mujoco_warnings",
-    "make_env",
-    "make_safety_gymnasium",
-]
+from __future__ import annotations
+
+import importlib
+
+_WHERE = {
+    "applied_patches": "compat",
+    "import_safety_gymnasium": "compat",
+    "enable_fast_reset": "fast_reset",
+    "fast_reset_enabled": "fast_reset",
+    "CostInInfo": "safety",
+    "log_mujoco_warnings": "safety",
+    "make_env": "safety",
+    "make_safety_gymnasium": "safety",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+    globals()[name] = value  # loaded once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_WHERE))

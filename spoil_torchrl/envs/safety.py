@@ -1,18 +1,23 @@
-"""TorchRL environments for the Safety-Gymnasium tasks, with the cost at ``("next", "cost")``."""
+"""TorchRL environments for the Safety-Gymnasium tasks, with the cost at ``("next", "cost")``.
+
+The gymnasium side (:func:`make_safety_gymnasium`, :class:`CostInInfo`) loads without torch; TorchRL is loaded
+by :func:`make_env`, the one function that needs it.
+"""
 
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import gymnasium
 import numpy as np
-import torch
-from torchrl.data import Composite, Unbounded
-from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv, default_info_dict_reader
 
 from spoil_torchrl.envs.compat import import_safety_gymnasium
 from spoil_torchrl.envs.fast_reset import disable_fast_reset, enable_fast_reset
 from spoil_torchrl.tasks import get_env_task
+
+if TYPE_CHECKING:
+    from torchrl.envs import TransformedEnv
 
 
 class CostInInfo(gymnasium.Wrapper):
@@ -75,6 +80,10 @@ def make_env(
         >>> env.rollout(3)["next", "cost"].shape
         torch.Size([3, 1])
     """
+    import torch
+    from torchrl.data import Composite, Unbounded
+    from torchrl.envs import DoubleToFloat, GymWrapper, TransformedEnv, default_info_dict_reader
+
     task = get_env_task(env_id)
     env = GymWrapper(make_safety_gymnasium(env_id, fast_reset=fast_reset), device=device)
     spec = Composite(cost=Unbounded(shape=(1,), dtype=torch.float32, device=device), shape=[])
