@@ -136,19 +136,24 @@ def solve_kl_projection(mdp: TabularCMDP, d_ref, allowed: np.ndarray, *, max_ite
 
 def solve_spoildice(mdp: TabularCMDP, d_P, d_S, threshold: float = 0.0) -> np.ndarray:
     """Exact SpoilDICE occupancy (Eq. 4; Table B row "SpoilDICE"): the occupancy closest to ``d_P`` in KL
-    among those supported on :math:`\\{(s,a): d_S(s,a) > \\text{threshold}\\}`.
+    among those supported on :math:`\\{(s,a): d_S(s,a) > \\text{threshold}\\}`; with several constraints (a
+    sequence of safe distributions, one per constraint), among those supported on the intersection of their
+    supports (``docs/several_constraints.md``).
 
     Args:
         mdp: the CMDP (its reward and cost are not used).
         d_P: ``[S, A]`` performant distribution.
-        d_S: ``[S, A]`` safe distribution; its support defines the constraint.
+        d_S: ``[S, A]`` safe distribution whose support defines the constraint, or ``K`` of them (a sequence, or
+            an array ``[K, S, A]``), one per constraint.
         threshold: pairs with ``d_S <= threshold`` are outside the support (appendix E.2 sweeps 1e-10 .. 1e-4).
 
     Returns:
-        ``d`` ``[S, A]``: satisfies the flow constraint to :data:`FLOW_TOL` and is exactly 0 off the support.
+        ``d`` ``[S, A]``: satisfies the flow constraint to :data:`FLOW_TOL` and is exactly 0 off the support
+        (off any of the supports).
 
     Raises:
-        InfeasibleProblemError: no occupancy lives on ``supp(d_S) ∩ supp(d_P)`` (Eq. 14 violated).
+        InfeasibleProblemError: no occupancy lives on ``supp(d_P)`` and every support (Eq. 14 violated); with
+            several constraints, the message gives the pairs inside each support and inside all of them.
 
     Examples:
         >>> mdp = TabularCMDP(np.full((2, 2, 2), 0.5), [[1.0, 0.0], [0.0, 0.0]], np.zeros((2, 2)),
@@ -158,11 +163,29 @@ def solve_spoildice(mdp: TabularCMDP, d_P, d_S, threshold: float = 0.0) -> np.nd
         >>> d = solve_spoildice(mdp, d_P, d_S)
         >>> float(d[0, 1]), round(float(d.sum()), 9)
         (0.0, 1.0)
+        >>> other = np.array([[0.25, 0.25], [0.5, 0.0]])  # a second constraint: action 1 never in state 1
+        >>> d = solve_spoildice(mdp, d_P, [d_S, other])
+        >>> float(d[0, 1]), float(d[1, 1]), round(float(d.sum()), 9)
+        (0.0, 0.0, 1.0)
     """
-    d_S = check_distribution(mdp, d_S, "d_S")
     if threshold < 0:
         raise ValueError(f"threshold must be >= 0, got {threshold}")
-    return solve_kl_projection(mdp, d_P, d_S > threshold)
+    several = np.ndim(d_S) == 3  # one safe distribution per constraint
+    safe = [
+        check_distribution(mdp, d, f"d_S[{k}]" if several else "d_S")
+        for k, d in enumerate(d_S if several else [d_S])
+    ]
+    if not safe:
+        raise ValueError("d_S: no safe distribution (give one per constraint)")
+    supports = [d > threshold for d in safe]
+    allowed = np.logical_and.reduce(supports)
+    if several and not allowed.any():
+        sizes = ", ".join(f"constraint {k}: {int(m.sum())}" for k, m in enumerate(supports))
+        raise InfeasibleProblemError(
+            f"the {len(supports)} supports share no state-action pair (pairs inside each: {sizes}); no policy "
+            "can respect every constraint"
+        )
+    return solve_kl_projection(mdp, d_P, allowed)
 
 
 def solve_spoildice_lagrangian(

@@ -143,3 +143,37 @@ def test_bad_distributions_raise():
 def test_policy_from_occupancy_is_uniform_without_mass():
     pi = policy_from_occupancy(np.array([[0.0, 0.0], [0.2, 0.6]]))
     np.testing.assert_allclose(pi, [[0.5, 0.5], [0.25, 0.75]])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_several_constraints_project_onto_the_intersection_of_the_supports(seed):
+    """K safe distributions: the occupancy closest to d_P on the intersection of their supports, i.e. the
+    single-constraint solution with the intersection as the support; one of them alone is the K = 1 case."""
+    problem = random_dual_demo_problem(seed=seed, slip=0.1)
+    mdp, d_S = problem.mdp, problem.d_S
+    rng = np.random.default_rng(seed)
+    allowed = rng.random(d_S.shape) < 0.5  # the second constraint's safe actions: half of them at random,
+    allowed[np.arange(mdp.n_states), (d_S > 0).argmax(axis=1)] = True  # and one of the first's in each state
+    other = occupancy(mdp, allowed / allowed.sum(axis=1, keepdims=True))
+    assert ((d_S > 0) & ~(other > 0)).any()  # the second constraint cuts pairs the first allows
+    intersection = ((d_S > 0) & (other > 0)).astype(float)
+    d_two = solve_spoildice(mdp, problem.d_P, [d_S, other])
+    d_cut = solve_spoildice(mdp, problem.d_P, intersection / intersection.sum())
+    np.testing.assert_allclose(d_two, d_cut, atol=1e-12)
+    assert d_two[(d_S <= 0) | (other <= 0)].sum() == 0.0
+    assert np.abs(flow_residual(mdp, d_two)).max() < 1e-6
+    np.testing.assert_array_equal(
+        solve_spoildice(mdp, problem.d_P, [d_S]), solve_spoildice(mdp, problem.d_P, d_S)
+    )
+    assert _kl(d_two, problem.d_P) >= _kl(solve_spoildice(mdp, problem.d_P, d_S), problem.d_P) - 1e-12
+
+
+def test_supports_without_a_common_pair_are_refused_with_their_sizes():
+    mdp = two_state_cmdp()
+    d_P = occupancy(mdp, [[0.5, 0.5], [0.5, 0.5]])
+    left = np.array([[1.0, 0.0], [0.0, 0.0]])
+    right = np.array([[0.0, 0.5], [0.5, 0.0]])
+    with pytest.raises(
+        InfeasibleProblemError, match="share no state-action pair .*constraint 0: 1, constraint 1: 2"
+    ):
+        solve_spoildice(mdp, d_P, np.stack([left, right]))
