@@ -21,6 +21,20 @@ from spoil_torchrl.objectives.keys import get_role, role_key
 from spoil_torchrl.objectives.pure import Tensors
 
 
+def support_term(lagrange: torch.Tensor, support: torch.Tensor) -> torch.Tensor:
+    """The support term of Eq. (7): :math:`\\lambda \\mathbb 1_S(s,a)`, or with several constraints (``lagrange``
+    of shape ``[K]``, ``support`` ``[n, K]``) :math:`\\sum_k \\lambda_k \\mathbb 1_k(s,a)`
+    (``docs/several_constraints.md``).
+
+    Examples:
+        >>> support_term(torch.tensor(2.0), torch.tensor([1.0, 0.0])).tolist()
+        [2.0, 0.0]
+        >>> support_term(torch.tensor([2.0, 3.0]), torch.tensor([[1.0, 1.0], [0.0, 1.0]])).tolist()
+        [5.0, 3.0]
+    """
+    return lagrange * support if lagrange.ndim == 0 else (support * lagrange).sum(-1)
+
+
 def spoildice_advantage(
     log_ratio: torch.Tensor,
     support: torch.Tensor,
@@ -28,7 +42,9 @@ def spoildice_advantage(
     nu: torch.Tensor,
     backup: torch.Tensor,
 ) -> torch.Tensor:
-    """Eq. (7): :math:`A_{\\nu,\\lambda}(s,a) = \\log r_P(s,a) + \\lambda \\mathbb 1_S(s,a) + \\gamma(T\\nu)(s,a) - \\nu(s)`.
+    """Eq. (7): :math:`A_{\\nu,\\lambda}(s,a) = \\log r_P(s,a) + \\lambda \\mathbb 1_S(s,a) + \\gamma(T\\nu)(s,a) - \\nu(s)`
+    (with several constraints, :math:`\\sum_k \\lambda_k \\mathbb 1_k` in place of :math:`\\lambda \\mathbb 1_S`:
+    :func:`support_term`).
 
     (The :math:`-\\log w` term of Eq. (7) cancels in the closed form, Eq. (11).)
 
@@ -37,7 +53,7 @@ def spoildice_advantage(
         ...                     torch.tensor([0.5]), torch.tensor([0.25])).item()
         2.75
     """
-    return log_ratio + lagrange * support + backup - nu
+    return log_ratio + support_term(lagrange, support) + backup - nu
 
 
 def closed_form_log_weight(advantage: torch.Tensor) -> torch.Tensor:
@@ -60,11 +76,15 @@ def spoildice_dual(
     closed-form weights, i.e. Eq. (12)'s :math:`\\lambda`-gradient :math:`E_U[w^* \\mathbb 1_S] - 1` evaluated
     at the normalisation :math:`E_U[w^*] = 1` that holds at the optimum.
 
+    With several constraints (``lagrange`` of shape ``[K]``) the last term is :math:`\\sum_k \\lambda_k`, and the
+    gradient in :math:`\\lambda_k` is :math:`E_U[\\tilde w \\mathbb 1_k] - 1` (``docs/several_constraints.md``).
+
     Examples:
         >>> spoildice_dual(torch.zeros(3), torch.zeros(4), torch.tensor(0.5), gamma=0.9).item()
         -0.5
     """
-    return (1.0 - gamma) * init_nu.mean() + log_mean_exp(advantage) - lagrange
+    multipliers = lagrange if lagrange.ndim == 0 else lagrange.sum()
+    return (1.0 - gamma) * init_nu.mean() + log_mean_exp(advantage) - multipliers
 
 
 def spoildice_losses(
@@ -91,7 +111,7 @@ def spoildice_losses(
     """
     backup = bellman_backup(next_nu, terminated, gamma)
     adv_nu = spoildice_advantage(log_ratio, support, lagrange.detach(), nu, backup)
-    adv_lambda = adv_nu.detach() + (lagrange - lagrange.detach()) * support
+    adv_lambda = adv_nu.detach() + support_term(lagrange - lagrange.detach(), support)
     loss_nu = spoildice_dual(init_nu, adv_nu, lagrange.detach(), gamma)
     loss_lambda = spoildice_dual(init_nu.detach(), adv_lambda, lagrange, gamma)
     return loss_nu, loss_lambda, adv_nu
@@ -113,13 +133,28 @@ def spoildice_diagnostics(
         >>> out = spoildice_diagnostics(z, z, z - 1, one, one, torch.tensor(0.5))
         >>> out["support_weight"].item(), out["effective_sample_size"].item()
         (1.0, 1.0)
+
+    With several constraints ``lagrange`` is :math:`\\sum_k \\lambda_k`, ``support_fraction`` and
+    ``support_weight`` are of the intersection (a transition inside every support), and ``lagrange_<k>``,
+    ``support_fraction_<k>`` and ``support_weight_<k>`` give each constraint's.
     """
     with torch.no_grad():
+        if lagrange.ndim == 0:
+            inside, per_constraint = support, {"lagrange": lagrange.detach().clone()}
+        else:
+            inside = support.prod(-1)
+            per_constraint = {"lagrange": lagrange.detach().sum()}
+            for k in range(lagrange.shape[-1]):
+                per_constraint |= {
+                    f"lagrange_{k}": lagrange.detach()[k].clone(),
+                    f"support_fraction_{k}": support[:, k].mean(),
+                    f"support_weight_{k}": (weights * support[:, k]).mean(),
+                }
         return {
-            "lagrange": lagrange.detach().clone(),
+            **per_constraint,
             **weight_diagnostics(log_weights, weights),
-            "support_fraction": support.mean(),
-            "support_weight": (weights * support).mean(),
+            "support_fraction": inside.mean(),
+            "support_weight": (weights * inside).mean(),
             "nu_init": init_nu.detach().mean(),
             "advantage_mean": advantage.detach().mean(),
         }
@@ -174,7 +209,12 @@ class SpoilDICELoss(DICELoss):
         gamma (float): discount in (0, 1). Default 0.99 (Table J).
         gradient_penalty (float): coefficient of the :math:`\nu` gradient penalty; 0 disables.
             Default 1e-4 (on standardised states; see CONTRIBUTING.md).
-        init_lagrange (float): initial :math:`\lambda`. Default 0.
+        init_lagrange (float): initial :math:`\lambda` (of every :math:`\lambda_k`). Default 0.
+        constraints (int): the number K of safety constraints, one support indicator and one multiplier
+            :math:`\lambda_k` each (``docs/several_constraints.md``): ``support`` then holds ``[n, K]``
+            indicators, the advantage has :math:`\sum_k \lambda_k \hat{\mathbb 1}_k` in place of
+            :math:`\lambda \hat{\mathbb 1}_S`, and the diagnostics come per constraint too. Default 1, the
+            paper's single constraint (a scalar :math:`\lambda`, exactly as with one).
         reduction (str): only ``"mean"``: the log-sum-exp couples the samples of a batch, so the objective has no
             per-sample form.
 
@@ -247,6 +287,8 @@ class SpoilDICELoss(DICELoss):
         "advantage_mean",
     ]
 
+    _PER_CONSTRAINT = ("lagrange", "support_fraction", "support_weight")
+
     nu_network: TensorDictModule
     nu_network_params: TensorDictParams
     target_nu_network_params: TensorDictParams
@@ -258,11 +300,19 @@ class SpoilDICELoss(DICELoss):
         gamma: float = 0.99,
         gradient_penalty: float = 1e-4,
         init_lagrange: float = 0.0,
+        constraints: int = 1,
         reduction: str | None = None,
     ) -> None:
         super().__init__()
+        if isinstance(constraints, bool) or not isinstance(constraints, int) or constraints < 1:
+            raise ValueError(f"constraints must be an integer >= 1, got {constraints!r}")
         self._setup_dual(nu_network, gamma=gamma, gradient_penalty=gradient_penalty, reduction=reduction)
-        self.lagrange = nn.Parameter(torch.tensor(float(init_lagrange)))
+        self.constraints = constraints
+        initial = torch.tensor(float(init_lagrange))
+        self.lagrange = nn.Parameter(initial if constraints == 1 else initial.repeat(constraints))
+        if constraints > 1:  # each constraint's diagnostics too
+            per = [f"{name}_{k}" for k in range(constraints) for name in self._PER_CONSTRAINT]
+            self.out_keys = [*self.out_keys, *per]
 
     @property
     def dual_role(self) -> NestedKey:
@@ -283,7 +333,16 @@ class SpoilDICELoss(DICELoss):
         keys = self.tensor_keys
         unlabeled = get_role(tensordict, keys.unlabeled)
         n = unlabeled.batch_size.numel()
-        support = unlabeled.get(keys.support).reshape(n)
+        support = unlabeled.get(keys.support)
+        if self.constraints == 1:
+            support = support.reshape(n)
+        else:
+            if support.shape[-1] != self.constraints or support.numel() != n * self.constraints:
+                raise ValueError(
+                    f"{role_key(keys.unlabeled, keys.support)} has shape {tuple(support.shape)}; with "
+                    f"constraints={self.constraints} it holds one indicator per constraint, [{n}, {self.constraints}]"
+                )
+            support = support.reshape(n, self.constraints)
         check_support_indicator(support, role_key(keys.unlabeled, keys.support))
         return {
             **super().inputs(tensordict),

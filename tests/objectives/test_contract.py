@@ -72,6 +72,14 @@ def _safedice_batch():
     return batch
 
 
+def _two_constraints_batch():
+    """A batch with two support indicators per unlabeled transition (``safe_support`` ``[n, 2]``)."""
+    batch = dual_batch()
+    first = batch["unlabeled", "safe_support"]
+    batch["unlabeled", "safe_support"] = torch.cat([first, 1.0 - first * (torch.rand_like(first) < 0.5)], -1)
+    return batch
+
+
 def _renamed(role: str, new_role: str, key: str | None = None, new_key: str | None = None):
     """A batch change that moves ``role`` to ``new_role`` (and its entry ``key`` to ``new_key``)."""
 
@@ -110,6 +118,16 @@ class Case:
 CASES = {
     "spoildice": Case(
         lambda **kw: SpoilDICELoss(_value(), gamma=0.9, **kw),
+        set_keys={"unlabeled": "pool", "support": "support_hat", "weight": "w"},
+        rename=_renamed("unlabeled", "pool", "safe_support", "support_hat"),
+        unknown_key="reward",
+        writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
+        state_has=("lagrange",),
+        plain={"gradient_penalty": 0.0},
+    ),
+    "spoildice_two_constraints": Case(
+        lambda **kw: SpoilDICELoss(_value(), gamma=0.9, constraints=2, **kw),
+        batch=_two_constraints_batch,
         set_keys={"unlabeled": "pool", "support": "support_hat", "weight": "w"},
         rename=_renamed("unlabeled", "pool", "safe_support", "support_hat"),
         unknown_key="reward",

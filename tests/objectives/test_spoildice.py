@@ -189,3 +189,65 @@ def test_non_binary_support_and_flat_terminated_are_rejected(batch):
     flat["unlabeled", "next", "terminated"] = torch.zeros(32, dtype=torch.bool)
     with pytest.raises(ValueError, match="trailing dimension of 1"):
         _loss()(flat)
+
+
+def _two_constraint_batch(batch):
+    """``batch`` with a second support indicator beside the first (``safe_support`` of shape ``[n, 2]``)."""
+    first = batch["unlabeled", "safe_support"]
+    second = (torch.arange(first.shape[0]) % 3 != 0).float().unsqueeze(-1)
+    batch["unlabeled", "safe_support"] = torch.cat([first, second], dim=-1)
+    return batch
+
+
+def test_several_constraints_sum_their_multipliers_in_the_advantage_and_the_dual(batch):
+    """K = 2: the advantage has lambda_1 1_1 + lambda_2 1_2 (docs/several_constraints.md), the dual subtracts
+    lambda_1 + lambda_2, and lambda_k's gradient is E[w 1_k] - 1, each constraint's own."""
+    batch = _two_constraint_batch(batch)
+    loss = _loss(constraints=2, gradient_penalty=0.0)
+    with torch.no_grad():
+        loss.lagrange.copy_(torch.tensor([0.4, 1.1]))
+    out = loss(batch)
+    assert loss.lagrange.shape == (2,) and set(out.keys()) == set(loss.out_keys)
+    support = batch["unlabeled", "safe_support"]
+    nu = loss.get_stateful_net("nu_network")
+    unl = batch["unlabeled"]
+    with torch.no_grad():
+        v = nu(unl.select("observation").clone())["nu"].squeeze(-1)
+        v_next = nu(unl["next"].select("observation").clone())["nu"].squeeze(-1)
+        init_nu = nu(batch["init"].clone())["nu"].mean()
+    not_term = 1.0 - unl["next", "terminated"].float().squeeze(-1)
+    adv = unl["log_ratio_performant"].squeeze(-1) + 0.4 * support[:, 0] + 1.1 * support[:, 1]
+    adv = adv + GAMMA * v_next * not_term - v
+    torch.testing.assert_close(out["advantage_mean"], adv.mean())
+    expected = (1 - GAMMA) * init_nu + torch.log(torch.exp(adv).mean()) - 1.5
+    torch.testing.assert_close(out["loss_lambda"], expected)
+    (grad,) = torch.autograd.grad(out["loss_lambda"], [loss.lagrange])
+    w = batch["unlabeled", "dice_weight"].squeeze(-1)
+    torch.testing.assert_close(grad, (w[:, None] * support).mean(0) - 1.0)
+    for k in range(2):
+        torch.testing.assert_close(out[f"support_weight_{k}"], (w * support[:, k]).mean())
+        torch.testing.assert_close(out[f"lagrange_{k}"], loss.lagrange[k].detach())
+    both = support.prod(-1)
+    torch.testing.assert_close(out["support_fraction"], both.mean())
+    torch.testing.assert_close(out["support_weight"], (w * both).mean())
+
+
+def test_one_constraint_of_several_is_the_single_constraint_loss(batch):
+    """Two identical indicators with (lambda, 0) give the single-constraint loss at lambda."""
+    single = _loss(init_lagrange=0.6, gradient_penalty=0.0)
+    double = _loss(constraints=2, gradient_penalty=0.0)
+    double.load_state_dict({**single.state_dict(), "lagrange": torch.tensor([0.6, 0.0])})
+    out_single = single(batch.clone())
+    support = batch["unlabeled", "safe_support"]
+    batch["unlabeled", "safe_support"] = torch.cat([support, support], dim=-1)
+    out_double = double(batch)
+    for key in ("loss_nu", "loss_lambda", "support_weight", "advantage_mean"):
+        torch.testing.assert_close(out_double[key], out_single[key])
+
+
+def test_several_constraints_refuse_a_support_of_another_width_and_bad_counts(batch):
+    with pytest.raises(ValueError, match=r"shape \(32, 1\); with constraints=2 .*\[32, 2\]"):
+        _loss(constraints=2)(batch)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="constraints must be an integer >= 1"):
+            _loss(constraints=bad)
