@@ -92,6 +92,18 @@ def _sum_losses(out: TensorDict) -> torch.Tensor:
     return sum(value for key, value in out.items() if key.startswith("loss_"))
 
 
+def _safe_roles(problem: DualDemoProblem) -> list[str]:
+    """The safe roles: ``["safe"]`` for one constraint, ``safe_0 .. safe_<K-1>`` for ``d_S`` of shape
+    ``[K, S, A]``."""
+    d_S = np.asarray(problem.d_S)
+    return ["safe"] if d_S.ndim == 2 else [f"safe_{k}" for k in range(d_S.shape[0])]
+
+
+def _support_key(role: str, safe_roles: list[str]) -> str:
+    """Where a safe role's support indicator is written: ``safe_support`` for the single constraint."""
+    return "safe_support" if safe_roles == ["safe"] else f"{role}_support"
+
+
 def _all_pairs(n_states: int, n_actions: int) -> TensorDict:
     s, a = np.divmod(np.arange(n_states * n_actions), n_actions)
     return TensorDict({"observation": one_hot(s, n_states), "action": one_hot(a, n_actions)}, [len(s)])
@@ -115,6 +127,11 @@ def train_tabular_spoildice(
     log: Callable[[dict, int], None] | None = None,
 ) -> TabularTrainingResult:
     """Run Algorithm 1 on samples of ``problem`` and return the learned policy's exact occupancy.
+
+    With several constraints (``problem.d_S`` of shape ``[K, S, A]``, :func:`~spoil_torchrl.tabular.problems.
+    random_constraints_problem`) each constraint has its safe set, discriminator and kappa-cut, and
+    :class:`SpoilDICELoss` one multiplier per constraint (``docs/several_constraints.md``); ``result.support``
+    is then the intersection of the K estimated supports.
 
     Args:
         problem: CMDP and distributions; D_S, D_P, D_U are ``config.n_samples`` i.i.d. draws from d_S, d_P, d_U.
@@ -143,18 +160,20 @@ def train_tabular_spoildice(
             if log is not None:
                 log(metrics, step)
 
-    # Input: D_S, D_P, D_U and the initial-state set D_0, one TorchRL buffer each.
+    # Input: D_S (one per constraint: safe_<k>), D_P, D_U and the initial-state set D_0, one TorchRL buffer each.
+    safe_roles = _safe_roles(problem)
+    safe = [problem.d_S] if safe_roles == ["safe"] else list(problem.d_S)
     datasets = {
-        "safe": sample_transitions(mdp, problem.d_S, cfg.n_samples, rng),
-        "performant": sample_transitions(mdp, problem.d_P, cfg.n_samples, rng),
-        "unlabeled": sample_transitions(mdp, problem.d_U, cfg.n_samples, rng),
+        role: sample_transitions(mdp, d, cfg.n_samples, rng) for role, d in zip(safe_roles, safe, strict=True)
     }
+    datasets["performant"] = sample_transitions(mdp, problem.d_P, cfg.n_samples, rng)
+    datasets["unlabeled"] = sample_transitions(mdp, problem.d_U, cfg.n_samples, rng)
     buffers = {role: _buffer(data, cfg.batch_size) for role, data in datasets.items()}
     buffers["init"] = _buffer(sample_initial_states(mdp, cfg.n_init, rng), cfg.batch_size)
 
-    # Pretrain C_P and C_S by optimising Eq. (16) and (17).
+    # Pretrain C_P and C_S (one C_S per constraint) by optimising Eq. (16) and (17).
     disc_losses = {}
-    for role in ("performant", "safe"):
+    for role in ("performant", *safe_roles):
         disc = make_discriminator(n_s, n_a, hidden_cells=cfg.discriminator_cells)
         disc_losses[role] = PUDiscriminatorLoss(
             disc, positive=role, gradient_penalty=cfg.discriminator_gradient_penalty
@@ -170,18 +189,29 @@ def train_tabular_spoildice(
         for role, out in outs.items():
             record(f"discriminator_{role}", out, step)
 
-    # r_P, r_S from Eq. (18); the support indicator from Eq. (13); annotate D_U once.
+    # r_P, r_S from Eq. (18); the support indicator from Eq. (13), one per constraint; annotate D_U once.
     ratio_p = LogRatio(disc_losses["performant"].frozen_network())
-    support = SupportEstimator(disc_losses["safe"].frozen_network(), kappa=cfg.kappa).fit(datasets["safe"])
+    supports = [
+        SupportEstimator(
+            disc_losses[role].frozen_network(), kappa=cfg.kappa, out_key=_support_key(role, safe_roles)
+        ).fit(datasets[role])
+        for role in safe_roles
+    ]
     annotate(buffers["unlabeled"], ratio_p)
-    annotate(buffers["unlabeled"], support)
+    for support in supports:
+        annotate(buffers["unlabeled"], support)
+    if len(supports) > 1:  # the K indicators side by side, [n, K], as SpoilDICELoss(constraints=K) reads them
+        keys = [support.out_keys[0] for support in supports]
+        stack = TensorDictModule(lambda *xs: torch.cat(xs, -1), in_keys=keys, out_keys=["safe_support"])
+        annotate(buffers["unlabeled"], stack)
 
-    # Initialise nu, lambda, pi; then optimise Eq. (19) for (nu, lambda) and Eq. (20) for pi.
+    # Initialise nu, lambda (one per constraint), pi; then optimise Eq. (19) for (nu, lambda) and Eq. (20) for pi.
     dice = SpoilDICELoss(
         make_value_network(n_s, hidden_cells=()),
         gamma=mdp.gamma,
         gradient_penalty=cfg.nu_gradient_penalty,
         init_lagrange=cfg.init_lagrange,
+        constraints=len(supports),
     )
     actor = make_actor(n_s, n_a, hidden_cells=(), distribution="categorical")
     policy_loss = WeightedBCLoss(actor, role="unlabeled", weight="dice_weight")
@@ -209,7 +239,8 @@ def train_tabular_spoildice(
         with policy_loss.actor_network_params.to_module(policy_loss.actor_network):
             policy = policy_loss.actor_network.get_dist(states).probs.double().numpy()
         pairs = _all_pairs(n_s, n_a)
-        estimated_support = _support_table(support, pairs).reshape(n_s, n_a).numpy()
+        tables = [_support_table(support, pairs).reshape(n_s, n_a).numpy() for support in supports]
+        estimated_support = np.logical_and.reduce(tables)  # with several constraints, the intersection
         log_ratio = ratio_p(pairs.clone())["log_ratio_performant"].reshape(n_s, n_a).double().numpy()
     policy = policy / policy.sum(axis=1, keepdims=True)
     return TabularTrainingResult(occupancy(mdp, policy), policy, estimated_support, log_ratio, history)
