@@ -128,10 +128,10 @@ def train_tabular_spoildice(
 ) -> TabularTrainingResult:
     """Run Algorithm 1 on samples of ``problem`` and return the learned policy's exact occupancy.
 
-    With several constraints (``problem.d_S`` of shape ``[K, S, A]``, :func:`~spoil_torchrl.tabular.problems.
-    random_constraints_problem`) each constraint has its safe set, discriminator and kappa-cut, and
-    :class:`SpoilDICELoss` one multiplier per constraint (``docs/several_constraints.md``); ``result.support``
-    is then the intersection of the K estimated supports.
+    With several constraints (``problem.d_S`` of shape ``[K, S, A]``, e.g. from
+    ``random_dual_demo_problem(constraints=K)``) each constraint has its safe set, discriminator and kappa-cut,
+    and :class:`SpoilDICELoss` one multiplier per constraint (``docs/several_constraints.md``);
+    ``result.support`` is then the intersection of the K estimated supports.
 
     Args:
         problem: CMDP and distributions; D_S, D_P, D_U are ``config.n_samples`` i.i.d. draws from d_S, d_P, d_U.

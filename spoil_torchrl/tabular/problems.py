@@ -16,7 +16,7 @@ class DualDemoProblem:
     ``d_P`` comes from a reward-seeking policy that also takes costly actions, ``d_S`` from a policy that never
     takes a costly action (so ``supp(d_S)`` excludes every costly pair), and ``d_U`` is an equal mixture of the
     performant, the safe and the uniform policy's occupancies (full support, so every ratio ``d/d_U`` is
-    finite). With several constraints (:func:`random_constraints_problem`) ``d_S`` and ``pi_S`` hold one safe
+    finite). With several constraints (``random_dual_demo_problem(constraints=K)``) ``d_S`` and ``pi_S`` hold one safe
     distribution and policy per constraint (``[K, S, A]``) and the CMDP's cost is 1 where any constraint's is.
     """
 
@@ -86,19 +86,28 @@ def random_dual_demo_problem(
     gamma: float = 0.9,
     temperature: float = 0.3,
     slip: float = 1.0,
+    constraints: int = 1,
 ) -> DualDemoProblem:
     """A :func:`random_cmdp` with IL-SP demonstration distributions (see :class:`DualDemoProblem`).
 
     The performant policy is a softmax of the immediate reward with ``temperature``; the safe policy is a
-    random softmax restricted to cost-free actions.
+    random softmax restricted to cost-free actions. With ``constraints`` K > 1 (``docs/several_constraints.md``)
+    there are K costs and K safe demonstrators (:func:`_several_constraints`).
 
     Examples:
         >>> problem = random_dual_demo_problem(seed=0)
         >>> float((problem.d_S * problem.mdp.cost).sum()), bool((problem.d_U > 0).all())
         (0.0, True)
+        >>> problem = random_dual_demo_problem(seed=0, constraints=2)
+        >>> problem.d_S.shape, [float((d * c).sum()) for d, c in zip(problem.d_S, problem.costs)]
+        ((2, 6, 3), [0.0, 0.0])
     """
+    if isinstance(constraints, bool) or not isinstance(constraints, int) or constraints < 1:
+        raise ValueError(f"constraints must be an integer >= 1, got {constraints!r}")
     mdp = random_cmdp(n_states, n_actions, seed=seed, gamma=gamma, slip=slip)
     rng = np.random.default_rng(seed + 1)
+    if constraints > 1:
+        return _several_constraints(mdp, rng, constraints, temperature)
     pi_P = softmax_policy(mdp.reward / temperature)
     pi_S = softmax_policy(rng.normal(size=(n_states, n_actions)), mask=mdp.cost == 0)
     pi_uniform = np.full((n_states, n_actions), 1.0 / n_actions)
@@ -107,47 +116,28 @@ def random_dual_demo_problem(
     return DualDemoProblem(mdp, d_P, d_S, d_U, pi_P, pi_S)
 
 
-def random_constraints_problem(
-    n_states: int = 6,
-    n_actions: int = 3,
-    *,
-    seed: int,
-    constraints: int = 2,
-    gamma: float = 0.9,
-    temperature: float = 0.3,
-    slip: float = 1.0,
+def _several_constraints(
+    mdp: TabularCMDP,
+    rng: np.random.Generator,
+    constraints: int,
+    temperature: float,
     cost_fraction: float = 0.3,
 ) -> DualDemoProblem:
-    """A random CMDP with ``constraints`` costs and one safe demonstrator per constraint
-    (``docs/several_constraints.md``).
-
-    Constraint 0's cost is :func:`random_cmdp`'s; each further constraint costs 1 on its own random
+    """The problem of :func:`random_dual_demo_problem` with ``constraints`` costs and one safe demonstrator per
+    constraint. Constraint 0's cost is ``mdp``'s; each further constraint costs 1 on its own random
     ``cost_fraction`` of the pairs. One action per state is free of every cost, so a policy can respect all of
     them. Safe demonstrator ``k`` is a random softmax over the actions free of cost ``k`` only: it respects its
-    constraint and may break the others. The performant policy and ``d_U`` are as in
-    :func:`random_dual_demo_problem` (``d_U`` mixes the performant, every safe and the uniform occupancy), and
-    the returned CMDP's cost is 1 where any constraint's is.
-
-    Examples:
-        >>> problem = random_constraints_problem(seed=0)
-        >>> problem.d_S.shape, [float((d * c).sum()) for d, c in zip(problem.d_S, problem.costs)]
-        ((2, 6, 3), [0.0, 0.0])
-    """
-    if constraints < 2:
-        raise ValueError(
-            f"constraints must be at least 2 (one is random_dual_demo_problem), got {constraints}"
-        )
-    mdp = random_cmdp(n_states, n_actions, seed=seed, gamma=gamma, slip=slip, cost_fraction=cost_fraction)
-    rng = np.random.default_rng(seed + 1)
+    constraint and may break the others. ``d_U`` mixes the performant, every safe and the uniform occupancy, and
+    the returned CMDP's cost is 1 where any constraint's is."""
     costs = [mdp.cost] + [
         (rng.uniform(size=mdp.cost.shape) < cost_fraction).astype(np.float64) for _ in range(constraints - 1)
     ]
-    for s in range(n_states):  # one action per state free of every cost: constraint 0's first free action
+    for s in range(mdp.n_states):  # one action per state free of every cost: constraint 0's first free action
         free = int(np.flatnonzero(mdp.cost[s] == 0)[0])
         for cost in costs[1:]:
             cost[s, free] = 0.0
-    union = np.max(costs, axis=0)
-    mdp = TabularCMDP(mdp.transition, mdp.reward, union, mdp.init, mdp.gamma)
+    mdp = TabularCMDP(mdp.transition, mdp.reward, np.max(costs, axis=0), mdp.init, mdp.gamma)
+    n_states, n_actions = mdp.n_states, mdp.n_actions
     pi_P = softmax_policy(mdp.reward / temperature)
     pi_S = np.stack([softmax_policy(rng.normal(size=(n_states, n_actions)), mask=c == 0) for c in costs])
     d_S = np.stack([occupancy(mdp, pi) for pi in pi_S])

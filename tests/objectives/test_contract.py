@@ -115,26 +115,23 @@ class Case:
     plain: dict = field(default_factory=dict)
 
 
+def _spoildice_case(constraints: int) -> Case:
+    """SpoilDICELoss with one constraint (the paper's) or several (one support indicator each)."""
+    return Case(
+        lambda **kw: SpoilDICELoss(_value(), gamma=0.9, constraints=constraints, **kw),
+        batch=dual_batch if constraints == 1 else _two_constraints_batch,
+        set_keys={"unlabeled": "pool", "support": "support_hat", "weight": "w"},
+        rename=_renamed("unlabeled", "pool", "safe_support", "support_hat"),
+        unknown_key="reward",
+        writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
+        state_has=("lagrange",),
+        plain={"gradient_penalty": 0.0},
+    )
+
+
 CASES = {
-    "spoildice": Case(
-        lambda **kw: SpoilDICELoss(_value(), gamma=0.9, **kw),
-        set_keys={"unlabeled": "pool", "support": "support_hat", "weight": "w"},
-        rename=_renamed("unlabeled", "pool", "safe_support", "support_hat"),
-        unknown_key="reward",
-        writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
-        state_has=("lagrange",),
-        plain={"gradient_penalty": 0.0},
-    ),
-    "spoildice_two_constraints": Case(
-        lambda **kw: SpoilDICELoss(_value(), gamma=0.9, constraints=2, **kw),
-        batch=_two_constraints_batch,
-        set_keys={"unlabeled": "pool", "support": "support_hat", "weight": "w"},
-        rename=_renamed("unlabeled", "pool", "safe_support", "support_hat"),
-        unknown_key="reward",
-        writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
-        state_has=("lagrange",),
-        plain={"gradient_penalty": 0.0},
-    ),
+    "spoildice": _spoildice_case(constraints=1),
+    "spoildice_two_constraints": _spoildice_case(constraints=2),
     "demodice": Case(
         lambda **kw: DemoDICELoss(_value(), gamma=0.9, alpha=0.1, **kw),
         set_keys={"regularization": "pool", "reward": "r", "weight": "w"},

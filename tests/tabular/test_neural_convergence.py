@@ -22,7 +22,7 @@ import pytest
 
 from spoil_torchrl.tabular import flow_residual, solve_spoildice, total_variation
 from spoil_torchrl.tabular.neural import TabularTrainingConfig, train_tabular_spoildice
-from spoil_torchrl.tabular.problems import random_constraints_problem, random_dual_demo_problem
+from spoil_torchrl.tabular.problems import random_dual_demo_problem
 
 pytestmark = pytest.mark.runs
 
@@ -69,7 +69,7 @@ def test_neural_spoildice_with_two_constraints_matches_the_exact_solution(seed):
     (docs/several_constraints.md). Seeds 2 and 4 of this family end at TV 0.10 and 0.12; SpoilDICE with one
     constraint whose support is their intersection ends at 0.11 on seed 4 too, so that gap is the single-constraint
     method's on those problems (see the module docstring), not the second constraint's."""
-    problem = random_constraints_problem(seed=seed, slip=0.1)
+    problem = random_dual_demo_problem(seed=seed, slip=0.1, constraints=2)
     exact = solve_spoildice(problem.mdp, problem.d_P, list(problem.d_S))
     # the second constraint matters: the first one's solution alone is far from the answer
     assert total_variation(solve_spoildice(problem.mdp, problem.d_P, problem.d_S[0]), exact) > 0.2
