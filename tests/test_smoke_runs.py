@@ -38,6 +38,7 @@ def smoke(tmp_path_factory, tiny_pc1_dataset):
                 [
                     "recipes/spoildice_dsrl.py",
                     "preset=smoke",
+                    "train.batch_size=64",  # the plumbing, at a quarter of the preset's update cost
                     f"algo={algo}",
                     "logger=none",
                     "progress=false",
