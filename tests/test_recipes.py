@@ -326,6 +326,7 @@ def test_minari_export_and_training_on_it(tmp_path, tiny_pc1_dataset):
     _recipe(
         "spoildice_dsrl",
         "preset=smoke",
+        "train.batch_size=64",
         "dataset.source=minari:test/tiny-pc1-v0",
         "dataset.scheme=stored",
         "logger=none",
