@@ -173,6 +173,29 @@ def check_support_indicator(support: torch.Tensor, key: NestedKey) -> None:
         )
 
 
+def check_supports_intersect(support: torch.Tensor, key: NestedKey) -> None:
+    """Raise a clear ``ValueError`` when ``support`` (``[n, K]`` indicators, one column per constraint, read from
+    ``key``) has no row inside every support: nothing can then be imitated within all K constraints, and the
+    dual of ``docs/several_constraints.md`` is unbounded below. Check it on all of D_U once it is annotated (a
+    batch may miss the intersection by chance).
+
+    Examples:
+        >>> check_supports_intersect(torch.tensor([[1.0, 0.0], [1.0, 1.0]]), "safe_support")
+        >>> check_supports_intersect(torch.tensor([[1.0, 0.0], [0.0, 1.0]]), "s")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: s: no transition is inside all 2 supports (share inside each: 50.0 %, 50.0 %); no policy ...
+    """
+    support = support.reshape(-1, support.shape[-1])
+    if bool((support.prod(-1) > 0).any()):
+        return
+    each = ", ".join(f"{100 * float(column.float().mean()):.1f} %" for column in support.T)
+    raise ValueError(
+        f"{key}: no transition is inside all {support.shape[-1]} supports (share inside each: {each}); "
+        "no policy can respect every constraint on this data"
+    )
+
+
 class SpoilDICELoss(DICELoss):
     r"""SpoilDICE's dual objective over :math:`\nu` and the support multiplier :math:`\lambda`.
 

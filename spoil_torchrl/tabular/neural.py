@@ -29,6 +29,7 @@ from spoil_torchrl.objectives import (
     WeightedBCLoss,
     annotate,
 )
+from spoil_torchrl.objectives.spoildice import check_supports_intersect
 from spoil_torchrl.tabular.cmdp import occupancy
 from spoil_torchrl.tabular.problems import DualDemoProblem
 from spoil_torchrl.tabular.sampling import one_hot, sample_initial_states, sample_transitions
@@ -203,7 +204,7 @@ def train_tabular_spoildice(
     if len(supports) > 1:  # the K indicators side by side, [n, K], as SpoilDICELoss(constraints=K) reads them
         keys = [support.out_keys[0] for support in supports]
         stack = TensorDictModule(lambda *xs: torch.cat(xs, -1), in_keys=keys, out_keys=["safe_support"])
-        annotate(buffers["unlabeled"], stack)
+        check_supports_intersect(annotate(buffers["unlabeled"], stack)["safe_support"], "safe_support")
 
     # Initialise nu, lambda (one per constraint), pi; then optimise Eq. (19) for (nu, lambda) and Eq. (20) for pi.
     dice = SpoilDICELoss(
