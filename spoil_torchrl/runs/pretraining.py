@@ -25,7 +25,7 @@ from spoil_torchrl.runs.resume import pretraining_fingerprint, settings_differ
 
 class StoredPretrainingRefused(CheckpointError):
     """A stored pre-training that does not belong to the run's data, found before the resumed run wrote
-    anything: the run directory is left as it was (its lock included, :func:`~spoil_torchrl.runs.lifecycle.claim_runs`)."""
+    anything: the run directory is left as it was (its lock included, :func:`~spoil_torchrl.runs.claim.claim_runs`)."""
 
 
 #: Where a run stores its pre-training (relative to the run directory).
