@@ -6,15 +6,21 @@
 Prints updates/s, each as a ratio to the plain reference, for: the library's LossModules stepped eagerly
 (``MultiLossStepper``'s step), the library's compiled step (``CompiledStepper``, ``train.compile=true``), the
 compiled step with float32 products handed to oneDNN (``train.matmul_precision=medium``, the default preset's;
-float32 kernels on this project's CPUs), K seeds vectorised (``VectorizedStepper``, the recipe's ``seeds=[...]``:
-the compiled step's pure update vmapped over stacked parameters, at medium; per seed and in total), a hand-written
-plain-PyTorch reference of the same step (same networks, loss and gradient penalty; with MKL's products, the ratios'
-base, and at medium), and the step's FLOP limit on this machine (the step's FLOPs counted with PyTorch's per-
-operator formulas, over a measured matmul rate of the step's own layer shapes, by MKL and by oneDNN): the most any
-implementation of this step could reach here; also for the compiled step's own arithmetic, which runs nu once fewer
-on the batch. The library and the reference are checked to compute the same losses before timing. Timings on shared
-2-core machines vary by 30-50 % between runs; the ratios, measured in one run with interleaved repeats (medians),
-are the stable numbers.
+float32 kernels on this project's CPUs), both again with the gradient penalty's ReLU chain written out
+(``train.penalty_form=relu_chain``: autograd's products on zeros skipped), K seeds vectorised
+(``VectorizedStepper``, the recipe's ``seeds=[...]``: the compiled step's pure update vmapped over stacked
+parameters, at medium; per seed and in total), a hand-written plain-PyTorch reference of the same step (same
+networks, loss and gradient penalty; with MKL's products, the ratios' base, and at medium), and, when JAX is
+installed (``pip install -e ".[bench]"``), the same step written in JAX and jit-compiled whole
+(``jax_peer.py``), with XLA's count of its FLOPs.
+
+Then the limits: the step's FLOPs (PyTorch's per-operator formulas) over a measured matmul rate of the step's
+own layer shapes, by MKL and by oneDNN, for the reference's and the compiled step's arithmetic (a ceiling for
+that formulation); and the limit of the machine, its rate on a large square product over the least arithmetic
+that computes the step's gradients (the relu_chain form's count). The library and the reference are checked to
+compute the same losses before timing. Timings on shared 2-core machines vary by 30-50 % between runs; the
+ratios, measured in one run with interleaved repeats (medians), are the stable numbers. For a one-thread
+comparison with the peer, pin the process to one core: ``taskset -c 1 make bench ARGS="--threads 1"``.
 """
 
 from __future__ import annotations
@@ -40,6 +46,11 @@ from spoil_torchrl.trainers.compiled import (
     update_gradients,
 )
 from spoil_torchrl.trainers.vectorized import VectorizedStepper
+
+try:  # run as a script (make bench) or imported from benchmarks/ on sys.path
+    from jax_peer import JaxStep, import_jax, jax_rate
+except ImportError:  # imported as benchmarks.bench_losses
+    from benchmarks.jax_peer import JaxStep, import_jax, jax_rate
 
 
 def make_batch(n: int, n_init: int, obs_dim: int, act_dim: int) -> TensorDict:
@@ -84,10 +95,14 @@ class LibraryStep:
 
 
 class CompiledLibraryStep:
-    """The library's compiled step (``CompiledStepper``) over a fresh :class:`LibraryStep`'s losses."""
+    """The library's compiled step (``CompiledStepper``) over a fresh :class:`LibraryStep`'s losses, with the
+    gradient penalty in ``penalty_form`` (``train.penalty_form``)."""
 
-    def __init__(self, obs_dim: int, act_dim: int, cells: tuple[int, ...]) -> None:
+    def __init__(
+        self, obs_dim: int, act_dim: int, cells: tuple[int, ...], penalty_form: str = "autograd"
+    ) -> None:
         step = LibraryStep(obs_dim, act_dim, cells)
+        step.dice.penalty_form = penalty_form
         self.stepper = CompiledStepper({"dice": step.dice, "actor": step.bc}, step.optims)
 
     def __call__(self, batch: TensorDict) -> None:
@@ -194,6 +209,18 @@ def matmul_rate(batch_size: int, cells: list[int], obs_dim: int, seconds: float 
     return rounds * flops_per_round / (time.perf_counter() - start)
 
 
+def machine_peak(size: int = 2048, seconds: float = 1.0) -> float:
+    """FLOP/s of this machine on a large square float32 product (``size`` x ``size``): the most any step's
+    products could reach here, whatever their shapes."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b  # warm-up
+    rounds, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        a @ b
+        rounds += 1
+    return rounds * 2 * size**3 / (time.perf_counter() - start)
+
+
 class ReferenceStep:
     """The same update in plain PyTorch: no tensordict, no LossModule; shares the library step's weights."""
 
@@ -263,6 +290,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seeds", type=int, default=5, help="K of the vectorised seeds (0: skip)")
     args = parser.parse_args()
+    jax = import_jax(args.threads)  # None: not installed (pip install -e ".[bench]"), no peer row
     torch.manual_seed(0)
     torch.set_num_threads(args.threads)
     batches = [make_batch(args.batch_size, args.batch_size, args.obs_dim, args.act_dim) for _ in range(8)]
@@ -289,6 +317,16 @@ def main() -> None:
         ("compiled", "highest", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
         ("compiled, medium", "medium", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
         (
+            "compiled, relu_chain",
+            "highest",
+            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain"),
+        ),
+        (
+            "compiled, relu_chain, medium",
+            "medium",
+            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain"),
+        ),
+        (
             f"{args.seeds} seeds vmapped",
             "medium",
             lambda: VectorizedSeeds(args.seeds, args.obs_dim, args.act_dim, cells, batches),
@@ -302,26 +340,45 @@ def main() -> None:
             steps[name][0](batches[0])  # compiles
         compile_seconds[name] = time.perf_counter() - start
     steps["plain reference, medium"] = (reference, "medium")
+    peer = None
+    if jax is not None:
+        start = time.perf_counter()
+        peer = JaxStep(args.obs_dim, args.act_dim, cells)
+        peer_batches = [peer.batch(b) for b in batches]
+        jax_rate(peer, peer_batches, 1)  # compiles
+        compile_seconds["JAX peer (XLA jit)"] = time.perf_counter() - start
     for step, precision in steps.values():  # warm-up
         with matmul_precision(precision):
             rate(step, batches, 20)
     rates: dict[str, list[float]] = {name: [] for name in steps}
+    if peer is not None:
+        jax_rate(peer, peer_batches, 20)
+        rates["JAX peer (XLA jit)"] = []
     peaks: dict[str, list[float]] = {"highest": [], "medium": []}
+    squares: dict[str, list[float]] = {"highest": [], "medium": []}
     for _ in range(args.repeats):  # interleaved, so all see the same machine load
         for name, (step, precision) in steps.items():  # (a vmapped call: a step of every seed)
             calls = max(1, args.steps // args.seeds) if name.endswith("vmapped") else args.steps
             with matmul_precision(precision):
                 rates[name].append(rate(step, batches, calls))
+        if peer is not None:
+            rates["JAX peer (XLA jit)"].append(jax_rate(peer, peer_batches, args.steps))
         for precision, runs in peaks.items():
             with matmul_precision(precision):
                 runs.append(matmul_rate(args.batch_size, args.cells, args.obs_dim))
+                squares[precision].append(machine_peak())
     flops = step_flops(reference, batches[0])
     form_flops = compiled_form_flops(steps["compiled"][0], batches[0])
+    least_flops = compiled_form_flops(steps["compiled, relu_chain"][0], batches[0])
     medians = {name: statistics.median(r) for name, r in rates.items()}
     peak = {precision: statistics.median(runs) for precision, runs in peaks.items()}
+    square = {precision: statistics.median(runs) for precision, runs in squares.items()}
     medians["FLOP limit"] = peak["highest"] / flops
     medians["FLOP limit, compiled"] = peak["highest"] / form_flops
     medians["FLOP limit, compiled, medium"] = peak["medium"] / form_flops
+    medians["limit: machine peak"] = square["highest"] / least_flops
+    medians["limit: machine peak, medium"] = square["medium"] / least_flops
+    step_gflops = {"JAX peer (XLA jit)": None if peer is None else peer.flops(peer_batches[0]) / 1e9}
     ref = medians["plain reference"]
     with matmul_precision("medium"):
         medium_error = matmul_relative_error()
@@ -342,16 +399,22 @@ def main() -> None:
                 f"compiling {compile_seconds[name]:.0f} s)"
             )
             continue
-        step_gflop = (form_flops if "compiled" in name else flops) / 1e9
-        rate_gflops = peak["medium" if name.endswith("medium") else "highest"] / 1e9
-        detail = (
-            f"(runs: {[round(r, 1) for r in runs]})"
-            if runs
-            else (
-                f"({step_gflop:.2f} GFLOP per step at {rate_gflops:.0f} GFLOP/s, measured on the step's "
-                "layer shapes)"
+        precision = "medium" if name.endswith("medium") else "highest"
+        if name.startswith("limit"):
+            detail = (
+                f"({least_flops / 1e9:.2f} GFLOP per step, the least: the relu_chain form's count; at "
+                f"{square[precision] / 1e9:.0f} GFLOP/s, this machine's rate on a 2048 x 2048 product)"
             )
-        )
+        elif runs:
+            detail = f"(runs: {[round(r, 1) for r in runs]})"
+            if step_gflops.get(name):
+                detail += f" {step_gflops[name]:.2f} GFLOP per step by XLA's count"
+        else:
+            step_gflop = (form_flops if "compiled" in name else flops) / 1e9
+            detail = (
+                f"({step_gflop:.2f} GFLOP per step at {peak[precision] / 1e9:.0f} GFLOP/s, measured on the "
+                "step's layer shapes)"
+            )
         if name in compile_seconds:
             detail += f" compiling {compile_seconds[name]:.0f} s"
         print(f"  {name:<28}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")

@@ -41,7 +41,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from spoil_torchrl.envs import log_mujoco_warnings
-from spoil_torchrl.precision import matmul_precision
+from spoil_torchrl.precision import training_precision
 from spoil_torchrl.runs.lifecycle import claim_runs, open_runs, pretrain
 from spoil_torchrl.runs.outcome import ended_in_one_line, is_sweep_job
 from spoil_torchrl.runs.results import summary_table
@@ -63,8 +63,9 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
         # 1. Input: D_S, D_P, D_U, D_0 in their buffers; the evaluator, the logger and results.json
         # (claim.seeds: each seed's settings, run directory and the checkpoint it continues from)
         runs = open_runs(claim)
-        with recorded_failure(runs), matmul_precision(cfg.train.get("matmul_precision", "highest")):
-            note_precision(runs)  # training's float32 products as configured; every rollout's are IEEE
+        with recorded_failure(runs), training_precision(cfg.train.get("matmul_precision", "highest")):
+            note_precision(runs)  # training's float32 products as configured (IEEE where oneDNN would take
+            # bfloat16); every rollout's are IEEE
             # 2. Pre-train C_P and C_S, fit the support cut, annotate D_U (each seed from its own random stream;
             # stored in the run, and loaded, not trained again, when it resumes)
             pretrained = [pretrain(inputs) for inputs in runs]

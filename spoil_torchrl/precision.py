@@ -14,7 +14,8 @@ oneDNN still picks its float32 kernel (``ONEDNN_VERBOSE=1`` names ``brg_matmul:a
 step's layer products 2.2x as fast as the MKL kernel ``"highest"`` uses, at float32 accuracy (largest relative
 error against float64: 4e-6, against 2e-6 for MKL; CONTRIBUTING.md, "Matmul precision"). On a CPU with AMX, oneDNN may
 take bfloat16 kernels instead (relative errors of ~1e-2). :func:`matmul_relative_error` measures which of the
-two a machine does; the main recipe records it in ``results.json`` and says so when products lose precision.
+two a machine does; the main recipe trains at :func:`training_precision`, which falls back to ``"highest"`` where
+products would lose precision, and records the level in force and its error in ``results.json``.
 The recipe applies the level to training (pre-training and the main stage) only, and every policy rollout
 (:func:`~spoil_torchrl.envs.rollout.rollout`: generated datasets, evaluations) computes IEEE products whatever the
 level, so neither a cached dataset nor an evaluation depends on it.
@@ -98,6 +99,40 @@ def matmul_relative_error(rows: int = 512, cells: int = 256) -> float:
     b = torch.randn(cells, cells, generator=generator)
     exact = a.double() @ b.double()
     return float(((a @ b).double() - exact).abs().max() / exact.abs().mean())
+
+
+@contextlib.contextmanager
+def training_precision(precision: str) -> Iterator[str]:
+    """Run training's block at ``precision`` (``train.matmul_precision``) if this machine keeps float32 products
+    float32 there, else at ``"highest"``: yields the level in force.
+
+    ``"medium"`` is the default presets' level because on CPUs without AMX oneDNN computes it in float32, 2.2x as
+    fast as MKL. A CPU with AMX computes it in bfloat16 (relative error ~1e-2, :func:`matmul_relative_error`):
+    the run would then train with other arithmetic than the same settings give elsewhere, so training falls back
+    to IEEE float32 (``"highest"``), says so once, and the run records the level in force
+    (``results.json``'s ``matmul_precision``).
+
+    Examples:
+        >>> with training_precision("highest") as level:
+        ...     level
+        'highest'
+    """
+    with matmul_precision(precision):
+        if precision == "highest" or matmul_relative_error() <= REDUCED_PRECISION_ERROR:
+            yield precision
+            return
+    log.warning(
+        f"train.matmul_precision={precision}: this CPU's oneDNN computes float32 products in bfloat16 there "
+        f"(relative error {matmul_relative_error_at(precision):.1e}); training uses IEEE float32 (highest) instead"
+    )
+    with matmul_precision("highest"):
+        yield "highest"
+
+
+def matmul_relative_error_at(precision: str) -> float:
+    """:func:`matmul_relative_error` at ``precision``."""
+    with matmul_precision(precision):
+        return matmul_relative_error()
 
 
 def matmul_check() -> float:

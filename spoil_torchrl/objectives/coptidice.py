@@ -208,6 +208,7 @@ class COptiDICELoss(DICELoss):
         self.cost_ub_epsilon = float(cost_ub_epsilon)
         if self.cost_ub_epsilon > 0:  # chi is trained and penalised after nu
             self.penalised = ("points", "chi_points")
+            self.penalised_networks = ("nu_network", "chi_network")
 
     @property
     def lagrange(self) -> torch.Tensor:
@@ -326,7 +327,12 @@ class COptiDICELoss(DICELoss):
         if self.cost_ub_epsilon > 0:
             chi_params = {k.removeprefix("chi."): v for k, v in params.items() if k.startswith("chi.")}
             *chi_values, chi_penalty = state_terms(
-                self.state_network("chi_network"), chi_params, x, x.get("chi_points"), self.gradient_penalty
+                self.state_network("chi_network"),
+                chi_params,
+                x,
+                x.get("chi_points"),
+                self.gradient_penalty,
+                self.penalty_layers("chi_network"),
             )
             chi_penalty = chi_penalty if on else None
         dtype = nu.dtype

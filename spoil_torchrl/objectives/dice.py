@@ -7,15 +7,24 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torch.func import grad
 
 from spoil_torchrl.objectives.functional import check_reduction, gradient_penalty, penalty_points
+from spoil_torchrl.objectives.input_gradient import (
+    PENALTY_FORMS,
+    relu_chain_layers,
+    values_and_input_gradient,
+)
 from spoil_torchrl.objectives.keys import DICETransitions, dice_transitions, get_role, role_key
 from spoil_torchrl.objectives.pure import PureLoss, PureNetwork, Tensors
 
 
 def state_terms(
-    network: PureNetwork, params: Tensors, x: Tensors, points: torch.Tensor | None, coefficient: float
+    network: PureNetwork,
+    params: Tensors,
+    x: Tensors,
+    points: torch.Tensor | None,
+    coefficient: float,
+    layers: list[str] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """A state network (nu, COptiDICE's chi) at the initial, current and next states of ``x``, and its
     weighted gradient penalty :math:`c\\,E[\\lVert \\nabla_s \\nu(\\tilde s) \\rVert^2]` on ``points`` (0 when
@@ -25,8 +34,10 @@ def state_terms(
     between initial and current states, then states between :math:`s` and :math:`s'` (DemoDICE's reference
     form, with the dual's own role in place of its expert data). With the penalty on, the network runs once on
     the points, whose first rows are the current states: their values and the input gradient come from that one
-    pass. The gradient is taken with :func:`torch.func.grad`, so the penalty trains the network's parameters
-    both under autograd and in a compiled step.
+    pass. The gradient is :func:`~spoil_torchrl.objectives.input_gradient.values_and_input_gradient`'s: autograd's
+    (:func:`torch.func.grad`), or with ``layers`` (the network's ReLU chain) the chain written out, whose gradient
+    in the parameters skips autograd's products on zeros. Either trains the network's parameters under autograd
+    and in a compiled step.
 
     Examples:
         >>> from spoil_torchrl.modules import make_value_network
@@ -43,17 +54,13 @@ def state_terms(
     def values(states: torch.Tensor) -> torch.Tensor:
         return network(params, states).reshape(states.shape[0])
 
-    def values_with_sum(states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = values(states)
-        return out.sum(), out
-
     n, n0 = x["current"].shape[0], x["init"].shape[0]
     init_v, next_v = values(torch.cat([x["init"], x["following"]])).split([n0, n])
     if points is None:
         return init_v, values(x["current"]), next_v, init_v.new_zeros(())
-    grads, on_points = grad(values_with_sum, has_aux=True)(points)
+    grads, current_v = values_and_input_gradient(network, params, points, layers=layers, value_rows=n)
     norms = grads.reshape(grads.shape[0], -1).norm(dim=-1)
-    return init_v, on_points[:n], next_v, coefficient * gradient_penalty(norms, target=None)
+    return init_v, current_v, next_v, coefficient * gradient_penalty(norms, target=None)
 
 
 class DICELoss(PureLoss):
@@ -156,9 +163,46 @@ class DICELoss(PureLoss):
                 out[name] = penalty_points(t.init, t.current, t.following)[key]
         return out
 
+    @property
+    def penalty_form(self) -> str:
+        """How the gradient penalty's input gradient is taken
+        (:func:`~spoil_torchrl.objectives.input_gradient.values_and_input_gradient`): ``"autograd"`` (the
+        default, any network) or ``"relu_chain"`` (state networks that are plain ReLU MLPs: the same values and
+        gradients up to float rounding, with fewer products). Setting ``"relu_chain"`` checks every penalised
+        network."""
+        return getattr(self, "_penalty_form", "autograd")
+
+    @penalty_form.setter
+    def penalty_form(self, form: str) -> None:
+        if form not in PENALTY_FORMS:
+            raise ValueError(f"penalty_form must be one of {PENALTY_FORMS}, got {form!r}")
+        layers = {}
+        if form == "relu_chain":
+            for name in self.penalised_networks:
+                network = self.state_network(name)
+                layers[name] = relu_chain_layers(network.network.module) if network.plain else None
+                if layers[name] is None:
+                    raise ValueError(
+                        f"penalty_form='relu_chain' needs {type(self).__name__}'s {name} to be a plain "
+                        "Linear/ReLU chain with one output (make_value_network builds one); use 'autograd'"
+                    )
+        self._penalty_form, self._penalty_layers = form, layers
+
+    #: the state networks with a gradient penalty, in the order of :attr:`penalised`
+    penalised_networks: tuple[str, ...] = ("nu_network",)
+
+    def penalty_layers(self, name: str) -> list[str] | None:
+        """The ReLU chain of the penalised network ``name`` under ``penalty_form="relu_chain"``, else ``None``."""
+        return getattr(self, "_penalty_layers", {}).get(name)
+
     def nu_terms(self, params: Tensors, x: Tensors) -> tuple[torch.Tensor, ...]:
         """nu at the initial, current and next states, and the weighted gradient penalty (0 when off)."""
         nu_params = {k.removeprefix("nu."): v for k, v in params.items() if k.startswith("nu.")}
         return state_terms(
-            self.state_network("nu_network"), nu_params, x, x.get("points"), self.gradient_penalty
+            self.state_network("nu_network"),
+            nu_params,
+            x,
+            x.get("points"),
+            self.gradient_penalty,
+            self.penalty_layers("nu_network"),
         )

@@ -16,6 +16,7 @@ from typing import Any
 from spoil_torchrl.data.parallel import available_cores
 from spoil_torchrl.data.prepare import SCHEMES
 from spoil_torchrl.errors import SettingsError
+from spoil_torchrl.objectives.input_gradient import PENALTY_FORMS
 from spoil_torchrl.precision import MATMUL_PRECISIONS
 
 
@@ -71,6 +72,7 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "reference_offsets": (lambda v: isinstance(v, bool), "true or false"),
     "standardize_reward": (lambda v: isinstance(v, bool), "true or false"),
     "matmul_precision": (lambda v: v in MATMUL_PRECISIONS, " | ".join(MATMUL_PRECISIONS)),
+    "penalty_form": (lambda v: v in PENALTY_FORMS, " | ".join(PENALTY_FORMS)),
     "alpha": (
         lambda v: v == "auto" or _non_negative(v),
         "a number >= 0 (or auto where the algorithm allows)",

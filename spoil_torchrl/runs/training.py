@@ -66,6 +66,16 @@ class Steps:
     label: Callable[[], str]
 
 
+def use_penalty_form(stepper, train) -> None:
+    """Give every DICE loss of ``stepper`` the gradient penalty's form ``train.penalty_form``
+    (:attr:`~spoil_torchrl.objectives.dice.DICELoss.penalty_form`; absent: ``"autograd"``, the form of every
+    committed result). Called before the first step, so a compiled step traces the form chosen."""
+    form = train.get("penalty_form", "autograd")
+    for loss in stepper.losses.values():
+        if hasattr(loss, "penalty_form"):
+            loss.penalty_form = form
+
+
 def one_seed(run: PretrainedRun) -> Steps:
     """The steps of one seed's run: its own stepper (compiled with ``train.compile``; said and run eagerly
     where it cannot be), its buffers' batches."""
@@ -73,6 +83,7 @@ def one_seed(run: PretrainedRun) -> Steps:
         run.training.stepper,
         run.inputs.buffers,
     )  # as built (compiled: the same losses, optimisers)
+    use_penalty_form(stepper, run.inputs.cfg.train)
     if run.inputs.cfg.train.compile:  # the whole update as one compiled graph
         stepper = CompiledStepper.from_stepper(stepper)
 
@@ -95,6 +106,8 @@ def vectorised_seeds(runs: list[PretrainedRun]) -> Steps:
     """The steps of several seeds at once: one vmapped update over their stacked networks
     (:class:`~spoil_torchrl.trainers.vectorized.VectorizedStepper`), each seed drawing from its own buffers and
     random stream, and each checkpointed as its single run would be."""
+    for run in runs:
+        use_penalty_form(run.training.stepper, run.inputs.cfg.train)
     stepper = VectorizedStepper(
         [r.training.stepper for r in runs],
         [r.random_state for r in runs],

@@ -25,7 +25,13 @@ from spoil_torchrl.objectives import (
     SpoilDICELoss,
     WeightedBCLoss,
 )
-from spoil_torchrl.trainers.compiled import detached, pure_losses, step_inputs, update_gradients
+from spoil_torchrl.trainers.compiled import (
+    _with_own_code,
+    detached,
+    pure_losses,
+    step_inputs,
+    update_gradients,
+)
 from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
 
 
@@ -49,7 +55,9 @@ def assert_compiles_whole(loss: LossModule, batch: TensorDictBase) -> None:
     params = {"loss": loss.term_parameters()}
     torch.manual_seed(7)
     inputs = step_inputs(losses, pure_losses(losses), batch.clone())
-    compiled = torch.compile(update_gradients(losses), backend="aot_eager", fullgraph=True)
+    # a code object of its own per loss: Dynamo recompiles one code object at most 8 times in a process
+    update = _with_own_code(update_gradients(losses), f"update_{type(loss).__name__}_{id(loss)}")
+    compiled = torch.compile(update, backend="aot_eager", fullgraph=True)
     grads, _ = compiled(detached(params), inputs)
     torch.manual_seed(7)
     out = loss(batch.clone())
