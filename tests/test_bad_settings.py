@@ -27,6 +27,10 @@ SETTING_CASES = [
         {"train": {"matmul_precision": "bf16"}},
         "train.matmul_precision = 'bf16': expected highest | high | medium",
     ),
+    (
+        {"train": {"penalty_form": "fast"}},
+        "train.penalty_form = 'fast': expected autograd | relu_chain",
+    ),
     ({"threads": 0}, "threads = 0"),
     ({"dataset": {"n_safe": 0}}, "dataset.n_safe = 0"),
     ({"dataset": {"safeness": 1.5}}, "dataset.safeness = 1.5"),

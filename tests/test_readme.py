@@ -1,4 +1,4 @@
-"""The README's code blocks run, with the two of docs/usage.md that continue its loop example."""
+"""The README's code blocks run, with the three of docs/usage.md that continue its loop example."""
 
 from __future__ import annotations
 
@@ -25,3 +25,8 @@ def test_readme_loop_example_runs(capsys):
     assert diagnostics, "docs/usage.md lost its diagnostics example"
     exec(compile(diagnostics[0], "README.md", "exec"), namespace)
     assert "of the weight mass sits on transitions with true cost > 0" in capsys.readouterr().out
+    constraints = [b for b in blocks if "constraints=2" in b]
+    assert constraints, "docs/usage.md lost its several-constraints example"
+    exec(compile(constraints[0], "README.md", "exec"), namespace)
+    printed = capsys.readouterr().out
+    assert "lagrange_1" in printed and "support_fraction_1" in printed

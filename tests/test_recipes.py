@@ -127,6 +127,49 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     assert results["dice_report"] in proc.stdout
 
 
+def _two_constraint_file(source, target):
+    """``source``'s transitions with two constraints' costs: ``a`` is the task's cost, ``b`` the same on every
+    second episode only (so the safe sets differ and their supports meet)."""
+    import h5py
+    import numpy as np
+
+    from spoil_torchrl.data.hdf5 import read_metadata, write_dsrl_file
+
+    with h5py.File(source) as f:
+        arrays = {k: f[k][()] for k in f}
+    ends = np.logical_or(arrays["terminals"], arrays["timeouts"]).astype(np.int64)
+    episode = np.concatenate([[0], np.cumsum(ends[:-1])])
+    arrays["cost_a"] = arrays["costs"]
+    arrays["cost_b"] = arrays["costs"] * (episode % 2 == 1)
+    return write_dsrl_file(target, arrays, metadata=read_metadata(source))
+
+
+def test_spoildice_with_two_constraints_end_to_end_and_other_methods_refuse_them(tmp_path, tiny_pc1_dataset):
+    dataset = _two_constraint_file(tiny_pc1_dataset, tmp_path / "two.hdf5")
+    run_dir = tmp_path / "run"
+    proc, results = _dsrl_recipe(run_dir, dataset, "+dataset.constraints=[a,b]")
+    assert results["status"] == "finished" and results["data"]["safe_a"]["episodes"] == 2
+    diagnostics = results["diagnostics"]
+    assert {"support_threshold_a", "support_threshold_b", "support_share_unlabeled_b"} <= set(diagnostics)
+    assert diagnostics["support_share_unlabeled"] <= min(
+        diagnostics["support_share_unlabeled_a"], diagnostics["support_share_unlabeled_b"]
+    )  # the intersection
+    logged = (run_dir / "logs").rglob("*lagrange_1*")
+    assert any(logged), "no per-constraint multiplier was logged"
+    proc = run_command(
+        [
+            "recipes/spoildice_dsrl.py",
+            "preset=smoke",
+            "algo=bc",
+            f"dataset.source=file:{dataset}",
+            "+dataset.constraints=[a,b]",
+            f"hydra.run.dir={tmp_path / 'bc'}",
+        ],
+        cwd=ROOT,
+    )
+    assert proc.returncode == 2 and "taken by algo=spoildice only" in proc.stderr
+
+
 def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dataset):
     cmd = [
         "recipes/spoildice_dsrl.py",

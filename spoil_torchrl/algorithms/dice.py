@@ -31,17 +31,27 @@ from spoil_torchrl.objectives import (
     safedice_auto_alpha,
     safedice_reward,
 )
+from spoil_torchrl.objectives.spoildice import check_supports_intersect
 
 
 def _value_network(cfg: Mapping[str, Any], context: BuildContext, **kwargs):
     return make_value_network(context.observation_dim, hidden_cells=tuple(cfg["hidden_cells"]), **kwargs)
 
 
+def constraint_roles_of(buffers) -> list[str]:
+    """The roles of the per-constraint safe sets in ``buffers`` (``safe_<name>``, in the dataset's order)."""
+    return [role for role in buffers.roles if role.startswith("safe_")]
+
+
 def pretrain_spoildice(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
     """SpoilDICE's stage 1 (Algorithm 1): C_P and C_S (Eq. 16-17), log r_P (Eq. 18), the kappa-quantile support
     cut fitted on D_S (Eq. 13), and D_U annotated once with ``log_ratio_performant`` and ``safe_support`` (D_P
-    with ``safe_support`` too, read by the diagnostics only: the share of D_P kept)."""
+    with ``safe_support`` too, read by the diagnostics only: the share of D_P kept).
+
+    With several constraints (roles ``safe_<name>`` in the buffers) it is :func:`pretrain_spoildice_constraints`."""
     buffers = context.buffers
+    if constraint_roles_of(buffers):
+        return pretrain_spoildice_constraints(cfg, context)
     discriminators = train_discriminators(cfg["discriminator"], context)
     ratio_p = discriminators["performant"].log_ratio_module("log_ratio_performant")
     support = fit_support(discriminators["safe"], buffers, "safe", float(cfg["kappa"]), "safe_support")
@@ -58,16 +68,64 @@ def pretrain_spoildice(cfg: Mapping[str, Any], context: BuildContext) -> Pretrai
     return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
 
 
+def pretrain_spoildice_constraints(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
+    """SpoilDICE's stage 1 with K constraints (``docs/several_constraints.md``): C_P, and one C_S^k per
+    constraint trained on its safe set ``safe_<name>`` against D_U (with C_S's gradient penalty), one kappa cut
+    per constraint (Eq. 13 on D_S^k), and D_U annotated once with ``log_ratio_performant`` and ``safe_support``
+    holding the K indicators ``[n, K]`` (each also as ``safe_support_<name>``). D_P gets the indicator of the
+    intersection as ``safe_support`` (diagnostics: the share of D_P inside every support). Refuses supports with
+    no transition of D_U in common (:func:`~spoil_torchrl.objectives.check_supports_intersect`)."""
+    buffers = context.buffers
+    roles = constraint_roles_of(buffers)
+    penalties = dict(cfg["discriminator"]["gradient_penalty"])
+    settings = dict(cfg["discriminator"]) | {
+        "gradient_penalty": penalties | dict.fromkeys(roles, penalties["safe"])
+    }
+    discriminators = train_discriminators(settings, context, positives=("performant", *roles))
+    buffers.annotate("unlabeled", discriminators["performant"].log_ratio_module("log_ratio_performant"))
+    columns, diagnostics = [], {}
+    for role in roles:
+        name = role.removeprefix("safe_")
+        key = f"safe_support_{name}"
+        support = fit_support(discriminators[role], buffers, role, float(cfg["kappa"]), key)
+        for target in ("unlabeled", "performant"):
+            buffers.annotate(target, support)
+        columns.append(key)
+        diagnostics |= {
+            f"support_share_unlabeled_{name}": float(buffers["unlabeled"].storage[:][key].float().mean()),
+            f"support_threshold_{name}": float(support.threshold),
+        }
+    buffers.annotate("unlabeled", "safe_support", lambda td: torch.cat([td[c] for c in columns], -1))
+    buffers.annotate(  # D_P: inside every support or not
+        "performant",
+        "safe_support",
+        lambda td: torch.cat([td[c] for c in columns], -1).prod(-1, keepdim=True),
+    )
+    unlabeled = buffers["unlabeled"].storage[:]
+    check_supports_intersect(unlabeled["safe_support"], "the annotated D_U's safe_support")
+    diagnostics |= {
+        "support_share_unlabeled": float(unlabeled["safe_support"].prod(-1).float().mean()),
+        "log_ratio_performant_mean": float(unlabeled["log_ratio_performant"].float().mean()),
+    }
+    keys = {
+        "unlabeled": ["log_ratio_performant", "safe_support", *columns],
+        "performant": ["safe_support", *columns],
+    }
+    return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
+
+
 def build_spoildice(
     cfg: Mapping[str, Any], context: BuildContext, pretraining: Pretraining
 ) -> PolicyTraining:
     """SpoilDICE's main stage (Algorithm 1): (nu, lambda) by Eq. (19) and pi by weighted BC on D_U (Eq. 20),
-    on D_U annotated by :func:`pretrain_spoildice`."""
+    on D_U annotated by :func:`pretrain_spoildice` (with K constraints, one lambda_k each)."""
+    constraints = len(constraint_roles_of(context.buffers))
     dice = SpoilDICELoss(
         _value_network(cfg, context),
         gamma=float(cfg["gamma"]),
         gradient_penalty=float(cfg["nu_gradient_penalty"]),
         init_lagrange=float(cfg["init_lagrange"]),
+        **({"constraints": constraints} if constraints else {}),
     )
     dual = [
         adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),

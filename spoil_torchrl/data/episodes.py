@@ -9,7 +9,7 @@ Keys of the result: ``observation``, ``action``, ``("next", "observation")``,
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -137,8 +137,12 @@ def episodes_from_arrays(
     source: str = "arrays",
     observation_dim: int | None = None,
     action_dim: int | None = None,
+    constraints: Sequence[str] | None = None,
 ) -> TensorDict:
     """Build the TED-layout transition TensorDict from DSRL-layout arrays (see module docstring).
+
+    Per-constraint costs (``cost_<name>`` arrays, or ``costs`` of shape ``[N, K]`` whose columns ``constraints``
+    names) go to ``("next", "constraint_costs", <name>)`` (:mod:`spoil_torchrl.data.constraint_costs`).
 
     Episodes end where ``terminals`` or ``timeouts`` is set. Rows after the last end flag form a final episode
     cut short: it is kept, marked truncated at its last row, and a warning says so. Floating-point arrays that
@@ -158,6 +162,9 @@ def episodes_from_arrays(
         >>> td["next", "terminated"].squeeze(-1).tolist(), td["next", "truncated"].squeeze(-1).tolist()
         ([False, True, False, False, False], [False, False, False, False, True])
     """
+    from spoil_torchrl.data.constraint_costs import CONSTRAINTS_KEY, split_cost_components  # (imports this)
+
+    arrays, components = split_cost_components(arrays, source=source, names=constraints)
     t = validate_arrays(arrays, source=source, observation_dim=observation_dim, action_dim=action_dim)
     n = t["observations"].shape[0]
     terminated = t["terminals"]
@@ -177,7 +184,7 @@ def episodes_from_arrays(
     episode[1:] = torch.cumsum(ends[:-1].to(torch.int64), 0)
     is_init = torch.ones(n, dtype=torch.bool)
     is_init[1:] = ends[:-1]
-    return TensorDict(
+    out = TensorDict(
         {
             "observation": t["observations"].to(torch.float32),
             "action": t["actions"].to(torch.float32),
@@ -194,6 +201,10 @@ def episodes_from_arrays(
         },
         batch_size=[n],
     )
+    if components:
+        parts = {name: value.to(torch.float32).unsqueeze(-1) for name, value in components.items()}
+        out["next", CONSTRAINTS_KEY] = TensorDict(parts, batch_size=[n])
+    return out
 
 
 def select_episodes(episodes: TensorDict, ids) -> TensorDict:

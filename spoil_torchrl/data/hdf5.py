@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from tensordict import MemoryMappedTensor, TensorDict
 
+from spoil_torchrl.data.constraint_costs import COMPONENT_PREFIX
 from spoil_torchrl.data.episodes import DSRL_KEYS, DatasetError, _first_non_finite_row, episodes_from_arrays
 
 #: HDF5 attribute holding the JSON metadata of files written by this project.
@@ -75,7 +76,7 @@ def _refuse_float32_overflow(dset: h5py.Dataset, target: np.ndarray, path: Path,
 
 def _read(dset: h5py.Dataset, path: Path, key: str, memmap_dir: Path | None) -> np.ndarray | torch.Tensor:
     """Read one dataset into a fresh array (one copy: HDF5 -> memory), float data as float32."""
-    dtype = np.float32 if key in FLOAT_KEYS else dset.dtype
+    dtype = np.float32 if key in FLOAT_KEYS or key.startswith(COMPONENT_PREFIX) else dset.dtype
     try:
         if memmap_dir is not None:
             out = MemoryMappedTensor.empty(
@@ -122,17 +123,26 @@ def read_dsrl_file(
                 raise DatasetError(
                     f"{path}: missing array '{missing[0]}' (a DSRL file has {', '.join(DSRL_KEYS)})"
                 )
-            objects = {k: f[k] for k in DSRL_KEYS}
+            # the DSRL arrays and the constraints' own costs (cost_<name>, data/constraint_costs.py)
+            objects = {k: f[k] for k in (*DSRL_KEYS, *sorted(k for k in f if k.startswith(COMPONENT_PREFIX)))}
             odd = [k for k, v in objects.items() if not isinstance(v, h5py.Dataset)]
             if odd:
                 raise DatasetError(f"{path}: '{odd[0]}' is a {type(objects[odd[0]]).__name__}, not an array")
             arrays = {k: _read(v, path, k, mm) for k, v in objects.items()}
+            costs = objects["costs"]  # a [N, K] array's columns are named by the metadata
+            constraints = (
+                _metadata(f, path).get("constraints") if costs.ndim == 2 and costs.shape[1] > 1 else None
+            )
         except DatasetError:  # already names the file and the problem
             raise
         except (OSError, RuntimeError, KeyError, ValueError, TypeError) as err:  # a damaged header or link
             raise DatasetError(f"{path}: the HDF5 file is corrupt ({type(err).__name__}: {err})") from err
     return episodes_from_arrays(
-        arrays, source=str(path), observation_dim=observation_dim, action_dim=action_dim
+        arrays,
+        source=str(path),
+        observation_dim=observation_dim,
+        action_dim=action_dim,
+        constraints=constraints,
     )
 
 
@@ -140,10 +150,15 @@ def read_metadata(path: str | os.PathLike) -> dict:
     """The JSON metadata this project writes into its own files (``{}`` for plain DSRL files)."""
     path = Path(path)
     with _open(path) as f:
-        try:
-            raw = f.attrs.get(METADATA_ATTR)
-        except (OSError, RuntimeError, KeyError) as err:
-            raise DatasetError(f"{path}: cannot read the metadata attribute ({err})") from err
+        return _metadata(f, path)
+
+
+def _metadata(f: h5py.File, path: Path) -> dict:
+    """:func:`read_metadata` of an open file."""
+    try:
+        raw = f.attrs.get(METADATA_ATTR)
+    except (OSError, RuntimeError, KeyError) as err:
+        raise DatasetError(f"{path}: cannot read the metadata attribute ({err})") from err
     if raw is None:
         return {}
     try:
@@ -164,7 +179,8 @@ def write_dsrl_file(
     metadata: Mapping | None = None,
     compression: str | None = "gzip",
 ) -> Path:
-    """Write ``arrays`` (the DSRL keys) to ``path`` atomically: a killed writer leaves no file that loads.
+    """Write ``arrays`` (the DSRL keys, and any ``cost_<name>`` arrays of per-constraint costs) to ``path``
+    atomically: a killed writer leaves no file that loads.
 
     The data go to a unique ``<path>.<random>.tmp`` first and are renamed into place once complete.
     ``metadata`` is stored as a JSON attribute. Examples are in the tests; the collection pipeline
@@ -182,7 +198,8 @@ def write_dsrl_file(
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it owner-only; a dataset gets the usual permissions
     try:
         with h5py.File(tmp, "w") as f:
-            for key in DSRL_KEYS:
+            extra = sorted(k for k in arrays if k.startswith(COMPONENT_PREFIX))  # the constraints' own costs
+            for key in (*DSRL_KEYS, *extra):
                 value = arrays[key]
                 value = value.numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
                 # fletcher32: HDF5 checks every chunk on read, so damaged bytes fail instead of loading

@@ -14,6 +14,7 @@ import torch
 from tensordict import TensorDict
 
 from spoil_torchrl.data.collect import segment_pools
+from spoil_torchrl.data.constraint_costs import constraint_roles
 from spoil_torchrl.data.episodes import DatasetError
 from spoil_torchrl.data.generated import ensure_generated
 from spoil_torchrl.data.labeling import (
@@ -134,6 +135,9 @@ def select_roles(
       dataset exported with its roles or labelled by hand with ``role_safe`` / ``role_performant`` /
       ``role_unlabeled`` episode flags); ``seed`` and the ``n_*`` sizes do not apply.
 
+    ``cfg["constraints"]`` (names of the data's per-constraint costs, ``docs/several_constraints.md``) adds one
+    safe set per constraint, the roles ``safe_<name>`` (:func:`~spoil_torchrl.data.constraint_costs.constraint_roles`).
+
     ``cfg["corruption"]`` (default 0) makes D_S noisy as the paper's G.6 does: that share of its trajectories is
     replaced by unsafe ones (episode cost above ``cost_threshold``) drawn from D_U outside D_S and D_P (seeded).
 
@@ -150,6 +154,7 @@ def select_roles(
     if unknown:
         raise ValueError(f"unknown extra roles {unknown}; available: {EXTRA_ROLES}")
     roles = _base_roles(episodes, cfg, cost_threshold=cost_threshold, metadata=metadata, seed=seed)
+    roles |= constraint_roles(episodes, cfg, cost_threshold=cost_threshold, seed=seed)
     if float(cfg.get("corruption") or 0.0) != 0.0:
         roles["safe"] = _corrupted_safe(episodes, roles, float(cfg["corruption"]), cost_threshold, seed)
     if "nonpreferred" in extra_roles:

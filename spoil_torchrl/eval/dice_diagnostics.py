@@ -179,11 +179,16 @@ def dice_diagnostics(
     spread = {"nu": _std(nu), "bellman": _std(bellman), "advantage": _std(advantage)}
     if "log_ratio_performant" in data.keys() and "safe_support" in data.keys() and hasattr(loss, "lagrange"):
         log_ratio = data.get("log_ratio_performant").reshape(-1).double()
-        lam_support = float(loss.lagrange) * data.get("safe_support").reshape(-1).double()
+        if loss.lagrange.ndim == 0:
+            lam_support = float(loss.lagrange) * data.get("safe_support").reshape(-1).double()
+            inside = data.get("safe_support").reshape(-1) > 0.5  # where the weights have their mass
+        else:  # several constraints: sum_k lambda_k 1_k, mass inside every support
+            support = data.get("safe_support").reshape(-1, loss.lagrange.shape[0]).double()
+            lam_support = (support * loss.lagrange.detach().double()).sum(-1)
+            inside = support.prod(-1) > 0.5
         terms.update(log_ratio_performant=log_ratio, lagrange_support=lam_support)
         spread.update(log_ratio_performant=_std(log_ratio), lagrange_support=_std(lam_support))
         terms["rest"] = advantage - bellman - log_ratio - lam_support  # ~0 for SpoilDICE (Eq. 7)
-        inside = data.get("safe_support").reshape(-1) > 0.5  # where the weights have their mass
         if int(inside.sum()) > 1:
             in_support = {k: v[inside] for k, v in terms.items() if k != "lagrange_support"}
     else:
@@ -206,11 +211,13 @@ def dice_diagnostics(
         "effective_sample_size": float(weights.sum() ** 2 / weights.pow(2).sum() / weights.numel()),
     }
     if hasattr(loss, "lagrange"):
-        out["lagrange"] = float(loss.lagrange)
+        lagrange = loss.lagrange.detach()
+        out["lagrange"] = float(lagrange) if lagrange.ndim == 0 else lagrange.tolist()
     if "safe_support" in data.keys():
-        out["support"] = support_accuracy(
-            data.get("safe_support"), cost, source_masks(data.get("episode"), pools)
-        )
+        support = data.get("safe_support")
+        if support.shape[-1] > 1:  # several constraints: the intersection
+            support = support.prod(-1, keepdim=True)
+        out["support"] = support_accuracy(support, cost, source_masks(data.get("episode"), pools))
     return out
 
 

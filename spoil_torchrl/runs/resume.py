@@ -29,7 +29,13 @@ from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 RESUMABLE_CHANGES = ("progress",)
 #: Settings some runs record and others do not, with the value a run without one had (the versions that wrote
 #: ``algo.support: estimated`` into every FBC run's settings, before it became an added key).
-IMPLIED_SETTINGS = {"algo.support": "estimated", "train.penalty_form": "autograd"}
+IMPLIED_SETTINGS = {
+    "algo.support": "estimated",
+    "train.penalty_form": "autograd",
+    "dataset.constraints": None,
+    "dataset.n_safe_per_constraint": None,
+    "dataset.constraint_thresholds": None,
+}
 
 
 def pretraining_fingerprint(buffers, diagnostics: Mapping[str, float]) -> str:

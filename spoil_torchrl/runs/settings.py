@@ -100,6 +100,23 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "cost_threshold": (_optional(_non_negative), "null or a number >= 0"),
     "scheme": (lambda v: v in SCHEMES, " or ".join(SCHEMES)),
     "generate": (lambda v: isinstance(v, bool), "true or false"),
+    "constraints": (
+        lambda v: (
+            v is None
+            or (
+                isinstance(v, (list, tuple))
+                and len(v) >= 1
+                and len(set(v)) == len(v)
+                and all(isinstance(n, str) and n.isidentifier() for n in v)
+            )
+        ),
+        "null or a list of distinct constraint names (the data's cost_<name> components)",
+    ),
+    "n_safe_per_constraint": (_optional(_positive_int), "null or an integer >= 1"),
+    "constraint_thresholds": (
+        lambda v: v is None or (isinstance(v, Mapping) and all(_non_negative(x) for x in v.values())),
+        "null or a mapping of constraint names to thresholds >= 0",
+    ),
     "return_range": (
         lambda v: (
             v is None
@@ -108,6 +125,9 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
         "null or two finite numbers [R_min, R_max] with R_min < R_max",
     ),
 }
+
+#: The algorithms that take ``dataset.constraints`` (several safety constraints, one safe set each).
+CONSTRAINED_ALGORITHMS = ("spoildice",)
 
 #: Top-level and nested settings that are switches. Hydra keeps ``no`` / ``off`` / ``0`` as they are typed
 #: (a string, an integer), and a string is always true, so anything but true or false is refused.
@@ -187,6 +207,14 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         rule = DATASET_RULES.get(key)
         if rule is not None and not rule[0](value):
             raise SettingsError(f"dataset.{key} = {value!r}: expected {rule[1]}")
+    _, constraints = _dotted(cfg, "dataset.constraints")
+    _, algo = _dotted(cfg, "algo.name")
+    if constraints and algo not in CONSTRAINED_ALGORITHMS:
+        raise SettingsError(
+            f"dataset.constraints = {list(constraints)!r}: several constraints are taken by algo="
+            f"{' | '.join(CONSTRAINED_ALGORITHMS)} only (one support cut per constraint); algo={algo} would "
+            "ignore them (docs/several_constraints.md)"
+        )
 
 
 def name_dataset_by_source(cfg, overrides: Sequence[str]) -> None:

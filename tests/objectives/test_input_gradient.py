@@ -111,3 +111,24 @@ def test_a_network_that_is_no_relu_chain_is_refused_for_it_and_bad_forms_are_nam
     with pytest.raises(ValueError, match="penalty_form must be one of"):
         loss.penalty_form = "fast"
     loss(dual_batch())  # still usable, in autograd's form
+
+
+def test_a_run_gives_its_dice_losses_the_configured_form_and_a_run_without_it_reads_as_autograd():
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from spoil_torchrl.modules import make_actor
+    from spoil_torchrl.objectives import WeightedBCLoss
+    from spoil_torchrl.runs.resume import settings_differ
+    from spoil_torchrl.runs.training import use_penalty_form
+
+    dice = SpoilDICELoss(make_value_network(OBS_DIM, hidden_cells=(16,)))
+    stepper = SimpleNamespace(losses={"dice": dice, "actor": WeightedBCLoss(make_actor(OBS_DIM, 2))})
+    use_penalty_form(stepper, OmegaConf.create({"steps": 10, "penalty_form": "relu_chain"}))
+    assert dice.penalty_form == "relu_chain" and dice.penalty_layers("nu_network") == ["0", "2"]
+    use_penalty_form(stepper, OmegaConf.create({"steps": 10}))
+    assert dice.penalty_form == "autograd" and dice.penalty_layers("nu_network") is None
+    old = "train:\n  steps: 10"
+    assert settings_differ(old, "train:\n  steps: 10\n  penalty_form: autograd") == []
+    assert settings_differ(old, "train:\n  steps: 10\n  penalty_form: relu_chain") == ["train.penalty_form"]

@@ -1,0 +1,108 @@
+"""Where the compiled SpoilDICE + weighted-BC step spends its time: a profiler trace of the update, per kernel.
+
+    python benchmarks/profile_step.py                      # both penalty forms, one thread, 50 steps each
+    python benchmarks/profile_step.py --forms relu_chain --steps 100 --top 30
+
+For each gradient-penalty form (``train.penalty_form``) the bench's step is compiled, warmed up, then profiled
+with ``torch.profiler`` and Inductor's per-kernel profiling on. It prints milliseconds per step in:
+
+* products: the matrix products (``aten::mm`` / ``addmm``, MKL or oneDNN), listed by shape with their FLOPs, so
+  the products of the penalty's points (1,536 rows at the bench's sizes), of the initial and next states (1,024),
+  of the batch (512) and the weight gradients (the rows as the inner dimension) can be told apart;
+* elementwise: Inductor's generated C++ kernels (activations, masks, the losses, reductions, fused);
+* optimiser: Adam (PyTorch's fused kernel once the step is compiled);
+* the rest of the step's wall time: Python, the dispatcher, Dynamo's guards, the tensordict reads and the
+  penalty points' random draws outside the graph.
+
+The trace slows the step down a little; the shares are what it is for. Timings on shared 2-core machines vary by
+30-50 % between runs: compare forms within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import time
+
+import torch
+import torch._inductor.config as inductor_config
+from bench_losses import CompiledLibraryStep, make_batch, rate
+
+from spoil_torchrl.precision import matmul_precision
+
+PRODUCTS = ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm")
+
+
+def _flops(name: str, shapes: list) -> float:
+    """2 M N K of a product event from its recorded input shapes."""
+    try:
+        if name == "aten::addmm":
+            (m, k), (_, n) = shapes[1], shapes[2]
+        else:
+            (m, k), (_, n) = shapes[0], shapes[1]
+    except (ValueError, IndexError, TypeError):
+        return 0.0
+    return 2.0 * m * n * k
+
+
+def profile(form: str, steps: int, precision: str, batches) -> tuple[dict, list, float]:
+    """Milliseconds per step by category, the products by shape, and the step's wall time (ms) under the trace."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    step = CompiledLibraryStep(28, 2, (256, 256), penalty_form=form)
+    with matmul_precision(precision):
+        rate(step, batches, 20)  # compiles, warms up
+        with torch_profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            start = time.perf_counter()
+            rate(step, batches, steps)
+            wall = (time.perf_counter() - start) * 1e3 / steps
+    categories: dict[str, float] = collections.Counter()
+    products: dict[tuple, list] = {}
+    for event in prof.key_averages(group_by_input_shape=True):
+        ms = event.self_cpu_time_total / 1e3 / steps
+        if event.key in PRODUCTS:
+            categories["products"] += ms
+            shapes = [tuple(s) for s in event.input_shapes if s]
+            entry = products.setdefault((event.key, str(shapes)), [0.0, 0, _flops(event.key, shapes)])
+            entry[0] += ms
+            entry[1] += event.count // steps
+        elif "cpp_fused" in event.key:
+            categories["elementwise (Inductor kernels)"] += ms
+        elif "adam" in event.key.lower() and event.key.startswith("aten::"):
+            categories["optimiser (Adam)"] += ms
+    categories["the rest (Python, dispatcher, guards, draws)"] = wall - sum(categories.values())
+    table = sorted(((ms, calls, flops, key) for key, (ms, calls, flops) in products.items()), reverse=True)
+    return dict(categories), table, wall
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--forms", nargs="+", default=["autograd", "relu_chain"])
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--precision", default="highest", help="float32 matmul precision (highest: MKL)")
+    parser.add_argument("--top", type=int, default=12, help="products listed per form")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    inductor_config.cpp.enable_kernel_profile = True  # each generated kernel is its own profiler event
+    batches = [make_batch(512, 512, 28, 2) for _ in range(8)]
+    for form in args.forms:
+        categories, table, wall = profile(form, args.steps, args.precision, batches)
+        print(
+            f"penalty_form={form}: {wall:.1f} ms per step under the trace ({args.threads} thread(s), "
+            f"matmul precision {args.precision})"
+        )
+        for name, ms in categories.items():
+            print(f"  {name:<46} {ms:7.2f} ms  {100 * ms / wall:5.1f} %")
+        print(f"  products by shape (top {args.top}):")
+        for ms, calls, flops, (name, shapes) in table[: args.top]:
+            rate_gflops = calls * flops / (ms / 1e3) / 1e9 if ms > 0 else 0.0
+            print(f"    {ms:6.2f} ms  {calls} x {name:<11} {shapes:<48} {rate_gflops:5.0f} GFLOP/s")
+
+
+if __name__ == "__main__":
+    main()

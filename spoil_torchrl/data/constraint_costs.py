@@ -1,0 +1,227 @@
+"""Per-constraint costs: a dataset whose cost has several named components, one per safety constraint
+(``docs/several_constraints.md``).
+
+A DSRL-layout file stores one ``costs`` array, the task's cost. Two forms add the constraints' own costs:
+
+* K named arrays ``cost_<name>`` of shape ``[N]`` beside ``costs`` (what this project's collection writes, and
+  what Safety-Gymnasium's ``cost_<name>`` info entries give): ``costs`` stays the task's cost as stored;
+* ``costs`` itself of shape ``[N, K]``: the components, named by the metadata's ``constraints`` list (else
+  ``c0``, ``c1``, ...), and the task's cost is their sum (Safety-Gymnasium's ``cost_sum``).
+
+Loaded, the components are ``("next", "constraint_costs", <name>)`` (float32, trailing dim 1) beside the
+scalar ``("next", "cost")``, so their names travel with the transitions. A dataset without components loads as
+before: nothing of this module is in its transitions.
+
+An episode is safe on constraint k when its cost on k is within k's threshold; the safe set D_S^k of a
+constraint is drawn from those episodes (:func:`constraint_safe_ids`).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from spoil_torchrl.data.episodes import DatasetError
+from spoil_torchrl.data.labeling import draw
+
+#: The prefix of a constraint's own cost array in a DSRL-layout file.
+COMPONENT_PREFIX = "cost_"
+#: Where the components live in the transitions: ``("next", CONSTRAINTS_KEY, <name>)``.
+CONSTRAINTS_KEY = "constraint_costs"
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def _tensor(x) -> torch.Tensor:
+    return x if isinstance(x, torch.Tensor) else torch.from_numpy(np.asarray(x))
+
+
+def check_constraint_name(name: str, source: str) -> None:
+    """Refuse a constraint name that cannot be a key and a role suffix (``safe_<name>``).
+
+    Examples:
+        >>> check_constraint_name("x_wall", "demo.hdf5")
+        >>> check_constraint_name("x wall", "demo.hdf5")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: demo.hdf5: constraint name 'x wall' must be letters, digits and _
+    """
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise DatasetError(f"{source}: constraint name {name!r} must be letters, digits and _")
+
+
+def split_cost_components(
+    arrays: Mapping[str, object], *, source: str = "arrays", names: Sequence[str] | None = None
+) -> tuple[dict, dict[str, torch.Tensor]]:
+    """``(arrays, components)``: the DSRL arrays with a one-column ``costs`` (the task's cost), and the
+    constraints' own costs by name (``{}`` when the data have none), checked.
+
+    ``names`` names the columns of a ``costs`` of shape ``[N, K]`` (the file's metadata ``constraints``);
+    ``cost_<name>`` arrays name themselves.
+
+    Examples:
+        >>> arrays = {"costs": np.array([[0.0, 1.0], [2.0, 0.0]], np.float32)}
+        >>> total, parts = split_cost_components(arrays, names=["x_wall", "y_wall"])
+        >>> total["costs"].tolist(), {k: v.tolist() for k, v in parts.items()}
+        ([1.0, 2.0], {'x_wall': [0.0, 2.0], 'y_wall': [1.0, 0.0]})
+        >>> split_cost_components(arrays, names=["x_wall"])  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: arrays: 'costs' has 2 columns, but 1 constraint names ...
+    """
+    out = dict(arrays)
+    named = {
+        k[len(COMPONENT_PREFIX) :]: _tensor(v) for k, v in arrays.items() if k.startswith(COMPONENT_PREFIX)
+    }
+    for key in [k for k in out if k.startswith(COMPONENT_PREFIX)]:
+        del out[key]
+    costs = _tensor(arrays["costs"]) if "costs" in arrays else None
+    columns = costs.shape[1] if costs is not None and costs.ndim == 2 else 1
+    if columns > 1:
+        if named:
+            raise DatasetError(
+                f"{source}: 'costs' has {columns} columns and the file has {len(named)} cost_<name> arrays too; "
+                "store the constraints' costs one way (docs/several_constraints.md)"
+            )
+        names = list(names) if names is not None else [f"c{k}" for k in range(columns)]
+        if len(names) != columns:
+            raise DatasetError(
+                f"{source}: 'costs' has {columns} columns, but {len(names)} constraint names are given "
+                f"({names}); name one constraint per column"
+            )
+        components = {name: costs[:, k] for k, name in enumerate(names)}
+        out["costs"] = costs.double().sum(1).to(costs.dtype)
+    else:
+        components = named
+    if len(set(components)) != len(components):
+        raise DatasetError(f"{source}: constraint names repeat ({list(components)})")
+    rows = None if costs is None else costs.shape[0]
+    for name, value in components.items():
+        check_constraint_name(name, source)
+        value = value.squeeze(1) if value.ndim == 2 and value.shape[1] == 1 else value
+        if value.ndim != 1 or (rows is not None and value.shape[0] != rows):
+            raise DatasetError(
+                f"{source}: constraint {name!r}'s costs have shape {tuple(value.shape)}; expected [{rows}], one per "
+                "transition like 'costs'"
+            )
+        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
+            raise DatasetError(f"{source}: constraint {name!r}'s costs must be finite floating-point numbers")
+        if bool((value < 0).any()):
+            raise DatasetError(f"{source}: constraint {name!r} has negative costs; costs must be >= 0")
+        components[name] = value
+    return out, components
+
+
+def constraint_names(episodes: TensorDict) -> list[str]:
+    """The names of the constraints whose costs the transitions carry (``[]``: the task's cost only).
+
+    Examples:
+        >>> constraint_names(TensorDict({"next": {"cost": torch.zeros(2, 1)}}, [2]))
+        []
+    """
+    parts = episodes.get(("next", CONSTRAINTS_KEY), None)
+    return [] if parts is None else list(parts.keys())
+
+
+def episode_constraint_costs(episodes: TensorDict) -> TensorDict:
+    """Per-episode cost of each constraint (float64, batch size ``[n_episodes]``, one entry per name).
+
+    Examples:
+        >>> td = TensorDict({"episode": torch.tensor([0, 0, 1]), "next": {CONSTRAINTS_KEY: {
+        ...     "x_wall": torch.tensor([[1.0], [1.0], [0.0]]), "y_wall": torch.tensor([[0.0], [0.0], [3.0]])}}}, [3])
+        >>> out = episode_constraint_costs(td)
+        >>> out["x_wall"].tolist(), out["y_wall"].tolist()
+        ([2.0, 0.0], [0.0, 3.0])
+    """
+    episode = episodes["episode"]
+    n = int(episode.max()) + 1
+    parts = episodes.get(("next", CONSTRAINTS_KEY), None)
+    out = TensorDict({}, batch_size=[n])
+    for name in [] if parts is None else parts.keys():
+        values = parts[name].reshape(-1).to(torch.float64)
+        out[name] = torch.zeros(n, dtype=torch.float64).index_add_(0, episode, values)
+    return out
+
+
+def constraint_safe_ids(
+    episodes: TensorDict,
+    constraints: Sequence[str],
+    thresholds: Mapping[str, float],
+    *,
+    source: str = "dataset",
+) -> dict[str, torch.Tensor]:
+    """For each constraint of ``constraints``, the ids of the episodes whose cost on it is within its threshold
+    (``thresholds[name]``): the pool its safe set D_S^k is drawn from.
+
+    Raises :class:`~spoil_torchrl.data.DatasetError` for a constraint the data do not have (naming those they
+    have) and for one that no episode respects.
+
+    Examples:
+        >>> td = TensorDict({"episode": torch.tensor([0, 1, 2]), "next": {CONSTRAINTS_KEY: {
+        ...     "x_wall": torch.tensor([[0.0], [9.0], [0.0]]), "y_wall": torch.tensor([[9.0], [0.0], [0.0]])}}}, [3])
+        >>> {k: v.tolist() for k, v in constraint_safe_ids(td, ["x_wall", "y_wall"], {"x_wall": 1.0, "y_wall": 1.0}).items()}
+        {'x_wall': [0, 2], 'y_wall': [1, 2]}
+    """
+    have = constraint_names(episodes)
+    unknown = [name for name in constraints if name not in have]
+    if unknown:
+        raise DatasetError(
+            f"{source}: dataset.constraints names {unknown}, but the data carry the costs of "
+            f"{have or 'no constraint'} (cost_<name> arrays, or a [N, K] costs array with named columns)"
+        )
+    costs = episode_constraint_costs(episodes)
+    out = {}
+    for name in constraints:
+        safe = (costs[name] <= float(thresholds[name])).nonzero().reshape(-1)
+        if safe.numel() == 0:
+            raise DatasetError(
+                f"{source}: no episode is within constraint {name!r}'s threshold {thresholds[name]} (lowest episode "
+                f"cost {float(costs[name].min()):.4g}): its safe set would be empty"
+            )
+        out[name] = safe
+    return out
+
+
+def constraint_roles(
+    episodes: TensorDict, cfg: Mapping, *, cost_threshold: float, seed: int
+) -> dict[str, torch.Tensor]:
+    """One safe set per constraint of ``cfg["constraints"]`` (``docs/several_constraints.md``): the role
+    ``safe_<name>`` holds ``cfg["n_safe_per_constraint"]`` (default ``n_safe``) episodes drawn (seeded) from those
+    within that constraint's threshold (``cfg["constraint_thresholds"][name]``, default the cost threshold).
+    ``{}`` when ``cfg`` names no constraint. D_S stays the scheme's: the demonstrations safe on the task's cost,
+    the merged label.
+
+    Examples:
+        >>> td = TensorDict({"episode": torch.arange(4), "next": {CONSTRAINTS_KEY: {
+        ...     "x_wall": torch.tensor([[0.0], [9.0], [0.0], [0.0]]),
+        ...     "y_wall": torch.tensor([[9.0], [0.0], [0.0], [9.0]])}}}, [4])
+        >>> cfg = {"constraints": ["x_wall", "y_wall"], "n_safe": 2}
+        >>> roles = constraint_roles(td, cfg, cost_threshold=1.0, seed=0)
+        >>> sorted(roles), sorted(roles["safe_y_wall"].tolist())
+        (['safe_x_wall', 'safe_y_wall'], [1, 2])
+    """
+    names = list(cfg.get("constraints") or [])
+    if not names:
+        return {}
+    source = str(cfg.get("source", "dataset"))
+    given = dict(cfg.get("constraint_thresholds") or {})
+    unknown = sorted(set(given) - set(names))
+    if unknown:
+        raise DatasetError(
+            f"dataset.constraint_thresholds names {unknown}, which dataset.constraints ({names}) does not have"
+        )
+    thresholds = {name: float(given.get(name, cost_threshold)) for name in names}
+    pools = constraint_safe_ids(episodes, names, thresholds, source=source)
+    k = int(cfg.get("n_safe_per_constraint") or cfg["n_safe"])
+    roles = {}
+    for i, name in enumerate(names):
+        if pools[name].numel() < k:
+            raise DatasetError(
+                f"{source}: {pools[name].numel()} episodes are within constraint {name!r}'s threshold "
+                f"{thresholds[name]}, fewer than n_safe_per_constraint={k}; lower it"
+            )
+        roles[f"safe_{name}"] = draw(pools[name], k, seed=seed + 10 + i)
+    return roles
