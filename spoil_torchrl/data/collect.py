@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from spoil_torchrl.data.hdf5 import write_dsrl_file
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
+from spoil_torchrl.envs.cost_components import cost_components
 from spoil_torchrl.envs.rollout import derive_seed, episode_totals, rollout
 from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
@@ -111,8 +112,12 @@ def collect(
     progress: bool = True,
     metadata: dict | None = None,
     workers: int | None = None,
+    components: bool = False,
 ) -> Path:
     """Roll out every segment's policy and write all episodes to ``path`` (DSRL layout, atomic).
+
+    With ``components`` each constraint's own cost is recorded too, as ``cost_<name>`` arrays
+    (:func:`~spoil_torchrl.envs.cost_components.cost_components` of the task; a task without them raises).
 
     The segments' and reference policies' rollouts are shared with ``workers`` worker processes
     (:class:`~spoil_torchrl.data.parallel.RolloutPool`; default: one per spare core once the rollouts reach
@@ -144,6 +149,7 @@ def collect(
         raise ValueError(f"metadata may not override the collector's own entries {sorted(clash)}")
     start_time = time.perf_counter()
     parts, records, first = [], [], 0
+    split = cost_components(env_id) if components else None
     jobs = [
         functools.partial(
             rollout,
@@ -154,6 +160,7 @@ def collect(
             num_envs=num_envs,
             progress=False,
             desc=f"{segment.label} ({segment.policy})",
+            components=split,
         )
         for k, segment in enumerate(segments)
     ]

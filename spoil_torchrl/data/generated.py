@@ -20,6 +20,8 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
   1,000 steps: a hopper that falls ends its episode).
 * ``walker2d-velocity-controlled`` -- the same four pools for SafetyWalker2dVelocity-v1 (2,000 episodes of at
   most 1,000 steps).
+* ``ant-velocity-controlled`` -- the same four pools for SafetyAntVelocity-v1 (2,000 episodes of at most 1,000
+  steps).
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ class GeneratedDataset:
     segments: tuple[Segment, ...]
     description: str
     seed: int = 0
+    #: record each constraint's own cost too (``cost_<name>`` arrays: :mod:`spoil_torchrl.envs.cost_components`)
+    components: bool = False
 
     @property
     def episodes(self) -> int:
@@ -59,7 +63,8 @@ class GeneratedDataset:
 
         policies = sorted({s.policy for s in self.segments if s.policy.startswith("zoo:")})
         digests = [hashlib.sha256(zoo_policy(self.env_id, p[4:]).read_bytes()).hexdigest() for p in policies]
-        text = json.dumps([self.env_id, self.seed, num_envs, [asdict(s) for s in self.segments], digests])
+        recipe = [self.env_id, self.seed, num_envs, [asdict(s) for s in self.segments], digests]
+        text = json.dumps(recipe + (["components"] if self.components else []))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -120,6 +125,12 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             "SafetyWalker2dVelocity-v1",
             _typed(500),
             "controlled Walker2dVelocity pools: 500 episodes of each policy type (paper F.2)",
+        ),
+        GeneratedDataset(
+            "ant-velocity-controlled",
+            "SafetyAntVelocity-v1",
+            _typed(500),
+            "controlled AntVelocity pools: 500 episodes of each policy type (paper F.2)",
         ),
     ]
 }
@@ -252,4 +263,5 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
         num_envs=num_envs,
         progress=progress,
         metadata={"name": spec.name, "description": spec.description, "fingerprint": fingerprint},
+        components=spec.components,
     )

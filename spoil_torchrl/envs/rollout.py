@@ -43,6 +43,7 @@ def rollout(
     desc: str | None = None,
     bar: tqdm | None = None,
     record: Callable[[Any], np.ndarray] | None = None,
+    components: Callable[[Any], dict[str, float]] | None = None,
 ) -> dict[str, np.ndarray]:
     """Run ``episodes`` episodes of ``policy`` (``None``: uniform random actions) and return DSRL arrays.
 
@@ -58,6 +59,8 @@ def rollout(
         record: called with the environment before each step; its results, stacked, are returned as
             ``"recorded"`` (one row per transition), e.g. the agent's pose for the rollout file
             (:func:`~spoil_torchrl.eval.env_scene.agent_pose`).
+        components: called with the environment after each step; its per-constraint costs (name -> cost) are
+            returned as ``cost_<name>`` arrays (:mod:`spoil_torchrl.envs.cost_components`).
 
     The episodes depend on these arguments only: the rollout draws from its own random stream and computes the
     policy's float32 products in IEEE precision on one thread, whatever the caller's
@@ -120,6 +123,7 @@ def rollout(
             for j, i in enumerate(active):
                 seen = None if record is None else record(envs[i])
                 next_obs, reward, terminated, truncated, info = envs[i].step(actions[j])
+                parts = None if components is None else components(envs[i])
                 steps[i].append(
                     (
                         batch[j],
@@ -130,6 +134,7 @@ def rollout(
                         terminated,
                         truncated,
                         seen,
+                        parts,
                     )
                 )
                 if terminated or truncated:
@@ -160,6 +165,11 @@ def rollout(
         "terminals": np.asarray(columns[5], dtype=bool),
         "timeouts": np.asarray(columns[6], dtype=bool),
         **({} if record is None else {"recorded": np.stack(columns[7])}),
+        **(
+            {}
+            if components is None
+            else {f"cost_{k}": np.asarray([p[k] for p in columns[8]], np.float32) for k in columns[8][0]}
+        ),
     }
 
 

@@ -128,3 +128,38 @@ def test_each_constraint_gets_a_safe_set_of_its_own_and_bad_choices_are_named():
             cost_threshold=0.0,
             seed=0,
         )
+
+
+def test_point_circle2_records_each_walls_cost_and_the_task_cost_is_their_union(tmp_path):
+    """Collected with components, a file carries x_wall / y_wall per step, computed from the agent's position
+    after the step, and the simulator's own cost is exactly their maximum (its Sigwalls cost is the union)."""
+    import importlib.util
+
+    if importlib.util.find_spec("safety_gymnasium") is None:
+        pytest.skip("safety-gymnasium not installed (EXTRAS=dev)")
+    from spoil_torchrl.data import Segment, collect
+
+    path = collect(
+        "SafetyPointCircle2-v0",
+        [Segment("unsafe-high", "zoo:unsafe-high", 2)],
+        tmp_path / "walls.hdf5",
+        num_envs=2,
+        reference_episodes=1,
+        progress=False,
+        components=True,
+    )
+    episodes = read_dsrl_file(path)
+    assert constraint_names(episodes) == ["x_wall", "y_wall"]
+    parts = episodes["next", CONSTRAINTS_KEY]
+    union = torch.maximum(parts["x_wall"], parts["y_wall"])
+    assert torch.equal(union, episodes["next", "cost"])
+    per_episode = episode_constraint_costs(episodes)
+    assert bool((per_episode["x_wall"] > 0).any()) and bool((per_episode["y_wall"] > 0).any())
+    with pytest.raises(ValueError, match="SafetyPointCircle1-v0 has no per-constraint costs"):
+        collect(
+            "SafetyPointCircle1-v0",
+            [Segment("unsafe-high", "zoo:unsafe-high", 1)],
+            tmp_path / "none.hdf5",
+            progress=False,
+            components=True,
+        )
