@@ -12,6 +12,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
+from spoil_torchrl.envs.cost_components import cost_components
 from spoil_torchrl.envs.rollout import episode_bounds, rollout
 from spoil_torchrl.eval.env_scene import agent_pose, make_render_env, replay_episodes, task_view
 from spoil_torchrl.eval.mcap_writer import RolloutWriter
@@ -79,6 +80,7 @@ def evaluation_rollout(
     seed: int,
     num_envs: int,
     record: Callable[[Any], np.ndarray] | None = None,
+    components: Callable[[Any], dict[str, float]] | None = None,
 ) -> dict[str, np.ndarray]:
     """The deterministic episodes of an evaluation (:func:`spoil_torchrl.envs.rollout.rollout`), the policy in
     eval mode meanwhile."""
@@ -95,6 +97,7 @@ def evaluation_rollout(
             deterministic=True,
             progress=False,
             record=record,
+            components=components,
         )
     finally:
         policy.train(was_training)
@@ -129,6 +132,10 @@ class Evaluator:
         frames: write a rendered ``frame_size`` square frame at every step (default off; needs an off-screen
             OpenGL context, checked here: :func:`~spoil_torchrl.eval.env_scene.make_render_env`).
         frame_size: width and height of the frames in pixels.
+        constraints: several constraints' thresholds (name -> episode-cost limit) of a task with per-constraint
+            costs (:mod:`spoil_torchrl.envs.cost_components`): each evaluation also reports ``cost_<name>`` (the
+            mean episode cost on that constraint) and ``feasible_all`` (the share of episodes within every
+            constraint's limit).
     """
 
     def __init__(
@@ -144,7 +151,10 @@ class Evaluator:
         poses: bool = True,
         frames: bool = False,
         frame_size: int = 256,
+        constraints: Mapping[str, float] | None = None,
     ) -> None:
+        self.constraints = dict(constraints or {})
+        self.components = cost_components(env_id) if self.constraints else None  # raises without them
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
         lo, hi = (float(v) for v in return_range)
@@ -181,6 +191,7 @@ class Evaluator:
             seed=self.seed,
             num_envs=self.num_envs,
             record=agent_pose if record_poses else None,  # frames need the replay's rendering instead
+            components=self.components,
         )
 
     def report(self, arrays: dict[str, np.ndarray], step: int = 0) -> dict:
@@ -188,6 +199,7 @@ class Evaluator:
 
         arrays = dict(arrays)
         recorded = arrays.pop("recorded", None)
+        parts = {k.removeprefix("cost_"): arrays.pop(k) for k in list(arrays) if k.startswith("cost_")}
         padded = pad_episodes(arrays)
         metrics = episode_metrics(padded, self.cost_threshold, return_range=self.return_range)
         if self.writer is not None:
@@ -217,4 +229,22 @@ class Evaluator:
         result = {"step": int(step)}
         result.update({key: float(metrics[key].mean()) for key in METRICS})
         result["episodes"] = {key: metrics[key].tolist() for key in (*METRICS, "length")}
+        if self.constraints:
+            per_episode = self._constraint_metrics(arrays, parts)
+            result |= {key: float(np.mean(values)) for key, values in per_episode.items()}
+            result["episodes"] |= {key: [float(v) for v in values] for key, values in per_episode.items()}
         return result
+
+    def _constraint_metrics(self, arrays: dict, parts: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Per episode: each constraint's cost (``cost_<name>``) and whether it is within every constraint's
+        limit (``feasible_all``, 1 or 0)."""
+        missing = sorted(set(self.constraints) - set(parts))
+        if missing:
+            raise ValueError(
+                f"{self.env_id}'s per-constraint costs are {sorted(parts)}; the evaluation's constraints {missing} "
+                "are not among them"
+            )
+        starts, _ = episode_bounds(arrays)
+        costs = {name: np.add.reduceat(parts[name].astype(np.float64), starts) for name in self.constraints}
+        within = np.all([costs[name] <= limit for name, limit in self.constraints.items()], axis=0)
+        return {f"cost_{name}": c for name, c in costs.items()} | {"feasible_all": within.astype(np.float64)}

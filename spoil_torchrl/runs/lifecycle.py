@@ -37,6 +37,7 @@ from spoil_torchrl.data import (
     standardize_observations,
 )
 from spoil_torchrl.data.prepare import prepare_dataset
+from spoil_torchrl.envs.cost_components import COST_COMPONENTS
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint
@@ -136,6 +137,7 @@ def _load(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, start: float)
         seed=10_000 + int(cfg.seed),
         num_envs=int(cfg.task.eval_num_envs),
         frames=bool(OmegaConf.select(cfg, "eval.frames", default=False)),
+        constraints=evaluated_constraints(cfg, task.env_id, data.cost_threshold),
     )
     stored = None if stored is None else stored[0]
     return _Loaded(
@@ -187,6 +189,16 @@ def _record(run: _Loaded) -> RunInputs:
         random_state=run.random_state,
         stored=run.stored,
     )
+
+
+def evaluated_constraints(cfg: DictConfig, env_id: str, cost_threshold: float) -> dict[str, float] | None:
+    """The thresholds of ``dataset.constraints`` (``dataset.constraint_thresholds``, else the cost threshold)
+    for the evaluator, when the task computes per-constraint costs (``None`` otherwise: the task's cost only)."""
+    names = list(OmegaConf.select(cfg, "dataset.constraints", default=None) or [])
+    if not names or env_id not in COST_COMPONENTS:
+        return None
+    given = dict(OmegaConf.select(cfg, "dataset.constraint_thresholds", default=None) or {})
+    return {name: float(given.get(name, cost_threshold)) for name in names}
 
 
 def _resumed_from(cfg: DictConfig, run_dir: Path, checkpoint: Path | None, config_yaml: str):

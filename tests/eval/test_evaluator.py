@@ -94,3 +94,33 @@ def test_an_evaluation_does_not_depend_on_the_callers_threads():
         two = evaluator(policy)
         assert torch.get_num_threads() == 2  # the caller's, restored
     assert two["episodes"] == one["episodes"]
+
+
+@pytest.mark.skipif(importlib.util.find_spec("safety_gymnasium") is None, reason="needs safety-gymnasium")
+def test_an_evaluation_with_several_constraints_reports_each_and_their_joint_feasibility():
+    from spoil_torchrl.zoo import load_policy, zoo_policy
+
+    policy, _ = load_policy(zoo_policy("SafetyPointCircle2-v0", "unsafe-high"))
+    limits = {"x_wall": 25.0, "y_wall": 60.0}
+    evaluator = Evaluator(
+        "SafetyPointCircle2-v0",
+        cost_threshold=25.0,
+        return_range=(0.0, 1.0),
+        episodes=3,
+        num_envs=3,
+        constraints=limits,
+    )
+    result = evaluator(policy, step=1)
+    episodes = result["episodes"]
+    within = [
+        float(x <= limits["x_wall"] and y <= limits["y_wall"])
+        for x, y in zip(episodes["cost_x_wall"], episodes["cost_y_wall"], strict=True)
+    ]
+    assert episodes["feasible_all"] == within and result["feasible_all"] == pytest.approx(np.mean(within))
+    assert result["cost_x_wall"] > 0 and result["cost_y_wall"] > 0
+    # the task's cost is the union of the walls': never more than their sum, never less than either
+    costs = np.array(episodes["cost"])
+    assert np.all(costs <= np.add(episodes["cost_x_wall"], episodes["cost_y_wall"]) + 1e-9)
+    assert np.all(costs >= np.maximum(episodes["cost_x_wall"], episodes["cost_y_wall"]) - 1e-9)
+    with pytest.raises(ValueError, match="SafetyPointCircle1-v0 has no per-constraint costs"):
+        Evaluator("SafetyPointCircle1-v0", cost_threshold=25.0, return_range=(0.0, 1.0), constraints=limits)
