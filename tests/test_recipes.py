@@ -316,6 +316,7 @@ def test_dataset_configs_select_their_evaluation_task():
             ("half_cheetah_velocity_controlled", "SafetyHalfCheetahVelocity-v1"),
             ("hopper_velocity_controlled", "SafetyHopperVelocity-v1"),
             ("walker2d_velocity_controlled", "SafetyWalker2dVelocity-v1"),
+            ("ant_velocity_controlled", "SafetyAntVelocity-v1"),
         ]:
             cfg = compose(config_name="spoildice_dsrl", overrides=[f"dataset={dataset}"])
             assert cfg.task.env_id == env_id, dataset

@@ -15,6 +15,7 @@ import torch
         "SafetyHalfCheetahVelocity-v1",
         "SafetyHopperVelocity-v1",
         "SafetyWalker2dVelocity-v1",
+        "SafetyAntVelocity-v1",
     ],
 )
 def test_zoo_has_the_four_policy_types(env_id):
