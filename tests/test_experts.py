@@ -446,3 +446,29 @@ def test_ppo_config_refuses_a_bad_cost_penalty():
     with pytest.raises(ValueError, match="needs ppo.lagrangian=false"):
         PPOConfig(cost_penalty=1.0, lagrangian=True)
     assert PPOConfig(cost_penalty=1).cost_penalty == 1
+
+
+@needs_safety_gymnasium
+def test_an_expert_can_train_against_one_constraints_own_cost():
+    """ppo.cost_component: the batches' cost is that wall's (the same trajectories, never above the task's
+    cost, which is the union of the walls'); bad choices are named."""
+    from spoil_torchrl.experts.lockstep import LockstepCollector
+    from spoil_torchrl.modules import make_actor
+
+    actor = make_actor(28, 2, hidden_cells=(8,), distribution="tanh_normal", return_log_prob=True)
+    batches = {}
+    for component in (None, "x_wall"):
+        collector = LockstepCollector("SafetyPointCircle2-v0", num_envs=2, cost_component=component)
+        torch.manual_seed(0)
+        batches[component] = collector.batch(actor, frames=1000, seed=3)
+        collector.close()
+    assert torch.equal(batches[None]["observation"], batches["x_wall"]["observation"])
+    assert bool((batches["x_wall"]["next", "cost"] <= batches[None]["next", "cost"]).all())
+    with pytest.raises(ValueError, match="needs ppo.num_envs > 1"):
+        PPOConfig(cost_component="x_wall")
+    with pytest.raises(ValueError, match="SafetyPointCircle1-v0 has no per-constraint costs"):
+        LockstepCollector("SafetyPointCircle1-v0", num_envs=2, cost_component="x_wall")
+    collector = LockstepCollector("SafetyPointCircle2-v0", num_envs=2, cost_component="z_wall")
+    with pytest.raises(ValueError, match=r"constraints are \['x_wall', 'y_wall'\]"):
+        collector.batch(actor, frames=10, seed=0)
+    collector.close()

@@ -47,15 +47,30 @@ class LockstepCollector:
         >>> collector.close()
     """
 
-    def __init__(self, env_id: str, num_envs: int) -> None:
+    def __init__(self, env_id: str, num_envs: int, *, cost_component: str | None = None) -> None:
         from spoil_torchrl.envs import make_safety_gymnasium
+        from spoil_torchrl.envs.cost_components import cost_components
 
         if num_envs < 1:
             raise ValueError(f"num_envs = {num_envs}: expected an integer >= 1")
         self.env_id = env_id
+        #: with a component, the cost is that constraint's own (envs.cost_components), not the task's
+        self.component = cost_component
+        self.split = None if cost_component is None else cost_components(env_id)
         self.envs = [make_safety_gymnasium(env_id) for _ in range(num_envs)]
         space = self.envs[0].action_space
         self.low, self.high = space.low, space.high
+
+    def _costs(self, step: list) -> list[float]:
+        """The step's costs: the task's, or the chosen constraint's (after the step, from the simulator)."""
+        if self.split is None:
+            return [float(s[4]["cost"][0]) for s in step]
+        parts = [self.split(env) for env in self.envs]
+        if self.component not in parts[0]:
+            raise ValueError(
+                f"ppo.cost_component = {self.component!r}: {self.env_id}'s constraints are {sorted(parts[0])}"
+            )
+        return [p[self.component] for p in parts]
 
     def batch(self, actor: nn.Module, frames: int, seed: int) -> TensorDict:
         """``frames`` frames of ``actor``'s sampled actions, ``frames / num_envs`` per environment, each
@@ -87,7 +102,7 @@ class LockstepCollector:
                     ("logp", out["action_log_prob"]),
                     ("next", torch.as_tensor(next_obs, dtype=torch.float32)),
                     ("reward", torch.tensor([float(s[1]) for s in step], dtype=torch.float32)),
-                    ("cost", torch.tensor([float(s[4]["cost"][0]) for s in step], dtype=torch.float32)),
+                    ("cost", torch.tensor(self._costs(step), dtype=torch.float32)),
                     ("term", torch.as_tensor(terminated)),
                     ("trunc", torch.as_tensor(truncated)),
                 ):

@@ -67,6 +67,9 @@ class PPOConfig:
     ``lr_decay`` lowers the actor's learning rate linearly to 0 over the run.
     ``cost_penalty`` > 0 (with ``lagrangian=False``) trains on the reward minus ``cost_penalty`` times the cost,
     a fixed multiplier where PPO-Lagrangian adapts one: a demonstrator that keeps the constraint by a penalty.
+    ``cost_component`` (with ``num_envs`` > 1) trains against one constraint's own cost instead of the task's
+    (:mod:`spoil_torchrl.envs.cost_components`, e.g. ``x_wall`` in SafetyPointCircle2): a demonstrator safe on
+    that constraint only.
     ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
     (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
     TorchRL environment); ``frames_per_batch`` must split evenly over them.
@@ -89,6 +92,7 @@ class PPOConfig:
     lagrange_lr: float = 0.035
     lagrange_init: float = 0.0
     cost_penalty: float = 0.0
+    cost_component: str | None = None
     checkpoint_every: int = 5  # batches
     normalize_observations: bool = False
     record_episodes: int = 0
@@ -154,6 +158,11 @@ class PPOConfig:
             raise ValueError(
                 f"ppo.cost_penalty = {penalty} with ppo.lagrangian=true: PPO-Lagrangian learns its multiplier; "
                 "a fixed penalty needs ppo.lagrangian=false"
+            )
+        if self.cost_component is not None and self.num_envs == 1:
+            raise ValueError(
+                f"ppo.cost_component = {self.cost_component!r} needs ppo.num_envs > 1 (the lockstep collector "
+                "reads each constraint's cost from the simulator)"
             )
         if self.frames_per_batch % self.num_envs:
             raise ValueError(
@@ -322,7 +331,11 @@ def train_ppo(
         unit="frame",
         disable=not progress,
     )
-    env = make_env() if config.num_envs == 1 else LockstepCollector(env_id, config.num_envs)
+    env = (
+        make_env()
+        if config.num_envs == 1
+        else LockstepCollector(env_id, config.num_envs, cost_component=config.cost_component)
+    )
     start = time.perf_counter()
     try:
         for index in range(first, batches):
