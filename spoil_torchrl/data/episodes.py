@@ -8,6 +8,7 @@ Keys of the result: ``observation``, ``action``, ``("next", "observation")``,
 
 from __future__ import annotations
 
+import re
 import warnings
 from collections.abc import Mapping, Sequence
 
@@ -40,6 +41,89 @@ def _flag(x: torch.Tensor, name: str, source: str) -> torch.Tensor:
     if not bool(((values == 0) | (values == 1)).all()):
         raise DatasetError(f"{source}: '{name}' must hold 0/1 flags, found values {values[:5].tolist()}")
     return x != 0
+
+
+#: The prefix of a constraint's own cost array in a DSRL-layout file.
+COMPONENT_PREFIX = "cost_"
+#: Where the components live in the transitions: ``("next", CONSTRAINTS_KEY, <name>)``.
+CONSTRAINTS_KEY = "constraint_costs"
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def check_constraint_name(name: str, source: str) -> None:
+    """Refuse a constraint name that cannot be a key and a role suffix (``safe_<name>``).
+
+    Examples:
+        >>> check_constraint_name("x_wall", "demo.hdf5")
+        >>> check_constraint_name("x wall", "demo.hdf5")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: demo.hdf5: constraint name 'x wall' must be letters, digits and _
+    """
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise DatasetError(f"{source}: constraint name {name!r} must be letters, digits and _")
+
+
+def split_cost_components(
+    arrays: Mapping[str, object], *, source: str = "arrays", names: Sequence[str] | None = None
+) -> tuple[dict, dict[str, torch.Tensor]]:
+    """``(arrays, components)``: the DSRL arrays with a one-column ``costs`` (the task's cost), and the
+    constraints' own costs by name (``{}`` when the data have none), checked.
+
+    ``names`` names the columns of a ``costs`` of shape ``[N, K]`` (the file's metadata ``constraints``);
+    ``cost_<name>`` arrays name themselves.
+
+    Examples:
+        >>> arrays = {"costs": np.array([[0.0, 1.0], [2.0, 0.0]], np.float32)}
+        >>> total, parts = split_cost_components(arrays, names=["x_wall", "y_wall"])
+        >>> total["costs"].tolist(), {k: v.tolist() for k, v in parts.items()}
+        ([1.0, 2.0], {'x_wall': [0.0, 2.0], 'y_wall': [1.0, 0.0]})
+        >>> split_cost_components(arrays, names=["x_wall"])  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: arrays: 'costs' has 2 columns, but 1 constraint names ...
+    """
+    out = dict(arrays)
+    named = {
+        k[len(COMPONENT_PREFIX) :]: _tensor(v) for k, v in arrays.items() if k.startswith(COMPONENT_PREFIX)
+    }
+    for key in [k for k in out if k.startswith(COMPONENT_PREFIX)]:
+        del out[key]
+    costs = _tensor(arrays["costs"]) if "costs" in arrays else None
+    columns = costs.shape[1] if costs is not None and costs.ndim == 2 else 1
+    if columns > 1:
+        if named:
+            raise DatasetError(
+                f"{source}: 'costs' has {columns} columns and the file has {len(named)} cost_<name> arrays too; "
+                "store the constraints' costs one way (docs/several_constraints.md)"
+            )
+        names = list(names) if names is not None else [f"c{k}" for k in range(columns)]
+        if len(names) != columns:
+            raise DatasetError(
+                f"{source}: 'costs' has {columns} columns, but {len(names)} constraint names are given "
+                f"({names}); name one constraint per column"
+            )
+        components = {name: costs[:, k] for k, name in enumerate(names)}
+        out["costs"] = costs.double().sum(1).to(costs.dtype)
+    else:
+        components = named
+    if len(set(components)) != len(components):
+        raise DatasetError(f"{source}: constraint names repeat ({list(components)})")
+    rows = None if costs is None else costs.shape[0]
+    for name, value in components.items():
+        check_constraint_name(name, source)
+        value = value.squeeze(1) if value.ndim == 2 and value.shape[1] == 1 else value
+        if value.ndim != 1 or (rows is not None and value.shape[0] != rows):
+            raise DatasetError(
+                f"{source}: constraint {name!r}'s costs have shape {tuple(value.shape)}; expected [{rows}], one per "
+                "transition like 'costs'"
+            )
+        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
+            raise DatasetError(f"{source}: constraint {name!r}'s costs must be finite floating-point numbers")
+        if bool((value < 0).any()):
+            raise DatasetError(f"{source}: constraint {name!r} has negative costs; costs must be >= 0")
+        components[name] = value
+    return out, components
 
 
 def _first_non_finite_row(value: torch.Tensor, chunk_rows: int = 1 << 16) -> int:
@@ -162,8 +246,6 @@ def episodes_from_arrays(
         >>> td["next", "terminated"].squeeze(-1).tolist(), td["next", "truncated"].squeeze(-1).tolist()
         ([False, True, False, False, False], [False, False, False, False, True])
     """
-    from spoil_torchrl.data.constraint_costs import CONSTRAINTS_KEY, split_cost_components  # (imports this)
-
     arrays, components = split_cost_components(arrays, source=source, names=constraints)
     t = validate_arrays(arrays, source=source, observation_dim=observation_dim, action_dim=action_dim)
     n = t["observations"].shape[0]

@@ -14,8 +14,13 @@ import numpy as np
 import torch
 from tensordict import MemoryMappedTensor, TensorDict
 
-from spoil_torchrl.data.constraint_costs import COMPONENT_PREFIX
-from spoil_torchrl.data.episodes import DSRL_KEYS, DatasetError, _first_non_finite_row, episodes_from_arrays
+from spoil_torchrl.data.episodes import (
+    COMPONENT_PREFIX,
+    DSRL_KEYS,
+    DatasetError,
+    _first_non_finite_row,
+    episodes_from_arrays,
+)
 
 #: HDF5 attribute holding the JSON metadata of files written by this project.
 METADATA_ATTR = "spoil_torchrl_metadata"
