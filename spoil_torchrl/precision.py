@@ -118,21 +118,16 @@ def training_precision(precision: str) -> Iterator[str]:
         'highest'
     """
     with matmul_precision(precision):
-        if precision == "highest" or matmul_relative_error() <= REDUCED_PRECISION_ERROR:
+        error = 0.0 if precision == "highest" else matmul_relative_error()
+        if error <= REDUCED_PRECISION_ERROR:
             yield precision
             return
     log.warning(
         f"train.matmul_precision={precision}: this CPU's oneDNN computes float32 products in bfloat16 there "
-        f"(relative error {matmul_relative_error_at(precision):.1e}); training uses IEEE float32 (highest) instead"
+        f"(relative error {error:.1e}); training uses IEEE float32 (highest) instead"
     )
     with matmul_precision("highest"):
         yield "highest"
-
-
-def matmul_relative_error_at(precision: str) -> float:
-    """:func:`matmul_relative_error` at ``precision``."""
-    with matmul_precision(precision):
-        return matmul_relative_error()
 
 
 def matmul_check() -> float:

@@ -86,7 +86,7 @@ def _dsrl_recipe(tmp_path, dataset, *overrides):
 
 def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
     from spoil_torchrl.eval import read_rollouts
-    from spoil_torchrl.precision import REDUCED_PRECISION_ERROR, matmul_relative_error_at
+    from spoil_torchrl.precision import REDUCED_PRECISION_ERROR, matmul_precision, matmul_relative_error
     from spoil_torchrl.stack import current_stack
     from spoil_torchrl.zoo import load_policy
 
@@ -94,7 +94,8 @@ def test_dsrl_recipe_smoke_end_to_end(tmp_path, tiny_pc1_dataset):
         tmp_path, tiny_pc1_dataset, "train.compile=true", "train.matmul_precision=medium"
     )
     assert results["update_step"] == "compiled" and "runs eagerly" not in proc.stdout + proc.stderr
-    bfloat16 = matmul_relative_error_at("medium") > REDUCED_PRECISION_ERROR  # a CPU with AMX: IEEE instead
+    with matmul_precision("medium"):
+        bfloat16 = matmul_relative_error() > REDUCED_PRECISION_ERROR  # a CPU with AMX: IEEE instead
     assert results["matmul_precision"] == ("highest" if bfloat16 else "medium")
     assert 0 < results["matmul_relative_error"] <= REDUCED_PRECISION_ERROR
     assert "| normalized_feasible_return |" in proc.stdout

@@ -21,6 +21,7 @@ from spoil_torchrl.algorithms.base import (
     frozen_networks,
     train_discriminators,
 )
+from spoil_torchrl.data.constraint_costs import CONSTRAINT_ROLE_PREFIX
 from spoil_torchrl.modules import make_value_network
 from spoil_torchrl.objectives import (
     COptiDICELoss,
@@ -40,7 +41,7 @@ def _value_network(cfg: Mapping[str, Any], context: BuildContext, **kwargs):
 
 def constraint_roles_of(buffers) -> list[str]:
     """The roles of the per-constraint safe sets in ``buffers`` (``safe_<name>``, in the dataset's order)."""
-    return [role for role in buffers.roles if role.startswith("safe_")]
+    return [role for role in buffers.roles if role.startswith(CONSTRAINT_ROLE_PREFIX)]
 
 
 def pretrain_spoildice(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
@@ -85,7 +86,7 @@ def pretrain_spoildice_constraints(cfg: Mapping[str, Any], context: BuildContext
     buffers.annotate("unlabeled", discriminators["performant"].log_ratio_module("log_ratio_performant"))
     columns, diagnostics = [], {}
     for role in roles:
-        name = role.removeprefix("safe_")
+        name = role.removeprefix(CONSTRAINT_ROLE_PREFIX)
         key = f"safe_support_{name}"
         support = fit_support(discriminators[role], buffers, role, float(cfg["kappa"]), key)
         for target in ("unlabeled", "performant"):

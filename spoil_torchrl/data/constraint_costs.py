@@ -26,7 +26,10 @@ import torch
 from tensordict import TensorDict
 
 from spoil_torchrl.data.episodes import CONSTRAINTS_KEY, DatasetError
-from spoil_torchrl.data.labeling import draw
+from spoil_torchrl.data.labeling import draw, episode_total
+
+#: The role of constraint ``<name>``'s safe set D_S^k is ``safe_<name>``.
+CONSTRAINT_ROLE_PREFIX = "safe_"
 
 
 def constraint_names(episodes: TensorDict) -> list[str]:
@@ -55,8 +58,7 @@ def episode_constraint_costs(episodes: TensorDict) -> TensorDict:
     parts = episodes.get(("next", CONSTRAINTS_KEY), None)
     out = TensorDict({}, batch_size=[n])
     for name in [] if parts is None else parts.keys():
-        values = parts[name].reshape(-1).to(torch.float64)
-        out[name] = torch.zeros(n, dtype=torch.float64).index_add_(0, episode, values)
+        out[name] = episode_total(episode, parts[name])
     return out
 
 
@@ -137,5 +139,5 @@ def constraint_roles(
                 f"{source}: {pools[name].numel()} episodes are within constraint {name!r}'s threshold "
                 f"{thresholds[name]}, fewer than n_safe_per_constraint={k}; lower it"
             )
-        roles[f"safe_{name}"] = draw(pools[name], k, seed=seed + 10 + i)
+        roles[f"{CONSTRAINT_ROLE_PREFIX}{name}"] = draw(pools[name], k, seed=seed + 10 + i)
     return roles

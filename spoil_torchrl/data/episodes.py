@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from spoil_torchrl.envs.cost_components import COMPONENT_PREFIX
 from spoil_torchrl.modules.normalization import ObservationNormalizer
 
 #: The arrays of a DSRL HDF5 file (flat, episodes back to back).
@@ -43,8 +44,6 @@ def _flag(x: torch.Tensor, name: str, source: str) -> torch.Tensor:
     return x != 0
 
 
-#: The prefix of a constraint's own cost array in a DSRL-layout file.
-COMPONENT_PREFIX = "cost_"
 #: Where the components live in the transitions: ``("next", CONSTRAINTS_KEY, <name>)``.
 CONSTRAINTS_KEY = "constraint_costs"
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

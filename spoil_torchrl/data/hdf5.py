@@ -15,12 +15,12 @@ import torch
 from tensordict import MemoryMappedTensor, TensorDict
 
 from spoil_torchrl.data.episodes import (
-    COMPONENT_PREFIX,
     DSRL_KEYS,
     DatasetError,
     _first_non_finite_row,
     episodes_from_arrays,
 )
+from spoil_torchrl.envs.cost_components import COMPONENT_PREFIX
 
 #: HDF5 attribute holding the JSON metadata of files written by this project.
 METADATA_ATTR = "spoil_torchrl_metadata"

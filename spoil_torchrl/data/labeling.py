@@ -17,6 +17,17 @@ ROLES = ("safe", "performant", "nonpreferred", "unlabeled")
 POOLS = ("safe-high", "safe-medium", "unsafe-high", "unsafe-medium")
 
 
+def episode_total(episode: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """The sum of per-transition ``values`` over each episode (float64, one entry per episode id of ``episode``).
+
+    Examples:
+        >>> episode_total(torch.tensor([0, 0, 1]), torch.tensor([[1.0], [2.0], [5.0]])).tolist()
+        [3.0, 5.0]
+    """
+    n = int(episode.max()) + 1
+    return torch.zeros(n, dtype=torch.float64).index_add_(0, episode, values.reshape(-1).to(torch.float64))
+
+
 def episode_stats(episodes: TensorDict) -> TensorDict:
     """Per-episode undiscounted ``return``, ``cost`` (float64) and ``length`` (int64), batch size [n_episodes].
 
@@ -30,16 +41,10 @@ def episode_stats(episodes: TensorDict) -> TensorDict:
     """
     episode = episodes["episode"]
     n = int(episode.max()) + 1
-
-    def total(values: torch.Tensor) -> torch.Tensor:
-        return torch.zeros(n, dtype=torch.float64).index_add_(
-            0, episode, values.reshape(-1).to(torch.float64)
-        )
-
     return TensorDict(
         {
-            "return": total(episodes["next", "reward"]),
-            "cost": total(episodes["next", "cost"]),
+            "return": episode_total(episode, episodes["next", "reward"]),
+            "cost": episode_total(episode, episodes["next", "cost"]),
             "length": torch.bincount(episode, minlength=n),
         },
         batch_size=[n],

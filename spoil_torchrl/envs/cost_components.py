@@ -13,6 +13,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+#: The prefix of a constraint's own cost, in rollout arrays and in a DSRL-layout file (``cost_<name>``).
+COMPONENT_PREFIX = "cost_"
+
 
 def boundary_walls(env) -> dict[str, float]:
     """The two walls of a ``Sigwalls`` task as two constraints, after the step just taken: ``x_wall`` is 1 outside

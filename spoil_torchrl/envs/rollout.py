@@ -16,6 +16,7 @@ from torchrl.modules import ProbabilisticActor
 from tqdm.auto import tqdm
 
 from spoil_torchrl.divergence import check_finite
+from spoil_torchrl.envs.cost_components import COMPONENT_PREFIX
 from spoil_torchrl.envs.safety import make_safety_gymnasium
 from spoil_torchrl.precision import intra_op_threads, matmul_precision
 from spoil_torchrl.tasks import get_env_task
@@ -168,7 +169,10 @@ def rollout(
         **(
             {}
             if components is None
-            else {f"cost_{k}": np.asarray([p[k] for p in columns[8]], np.float32) for k in columns[8][0]}
+            else {
+                f"{COMPONENT_PREFIX}{k}": np.asarray([p[k] for p in columns[8]], np.float32)
+                for k in columns[8][0]
+            }
         ),
     }
 

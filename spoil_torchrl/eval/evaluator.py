@@ -12,7 +12,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.modules import ProbabilisticActor
 
-from spoil_torchrl.envs.cost_components import cost_components
+from spoil_torchrl.envs.cost_components import COMPONENT_PREFIX, cost_components
 from spoil_torchrl.envs.rollout import episode_bounds, rollout
 from spoil_torchrl.eval.env_scene import agent_pose, make_render_env, replay_episodes, task_view
 from spoil_torchrl.eval.mcap_writer import RolloutWriter
@@ -199,7 +199,11 @@ class Evaluator:
 
         arrays = dict(arrays)
         recorded = arrays.pop("recorded", None)
-        parts = {k.removeprefix("cost_"): arrays.pop(k) for k in list(arrays) if k.startswith("cost_")}
+        parts = {
+            k.removeprefix(COMPONENT_PREFIX): arrays.pop(k)
+            for k in list(arrays)
+            if k.startswith(COMPONENT_PREFIX)
+        }
         padded = pad_episodes(arrays)
         metrics = episode_metrics(padded, self.cost_threshold, return_range=self.return_range)
         if self.writer is not None:

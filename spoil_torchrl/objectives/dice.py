@@ -92,6 +92,7 @@ class DICELoss(PureLoss):
         self.state_network("nu_network").in_key  # noqa: B018 (raises unless nu reads one entry)
         self.gamma = float(gamma)
         self.gradient_penalty = float(gradient_penalty)
+        self._penalty_form, self._penalty_layers = "autograd", {}  # (penalty_form)
 
     @property
     def dual_role(self) -> NestedKey:
@@ -170,7 +171,7 @@ class DICELoss(PureLoss):
         default, any network) or ``"relu_chain"`` (state networks that are plain ReLU MLPs: the same values and
         gradients up to float rounding, with fewer products). Setting ``"relu_chain"`` checks every penalised
         network."""
-        return getattr(self, "_penalty_form", "autograd")
+        return self._penalty_form
 
     @penalty_form.setter
     def penalty_form(self, form: str) -> None:
@@ -193,7 +194,7 @@ class DICELoss(PureLoss):
 
     def penalty_layers(self, name: str) -> list[str] | None:
         """The ReLU chain of the penalised network ``name`` under ``penalty_form="relu_chain"``, else ``None``."""
-        return getattr(self, "_penalty_layers", {}).get(name)
+        return self._penalty_layers.get(name)
 
     def nu_terms(self, params: Tensors, x: Tensors) -> tuple[torch.Tensor, ...]:
         """nu at the initial, current and next states, and the weighted gradient penalty (0 when off)."""

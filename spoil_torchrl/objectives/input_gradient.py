@@ -10,7 +10,8 @@ ReLU's backward in its input is a tensor of zeros (``zeros_like`` in PyTorch's d
 tensor is then sent back through the whole forward pass, two more matrix products per layer on every penalty
 point, all of whose rows are zero. :func:`values_and_input_gradient` writes the chain out for a network that is
 a plain ``Linear`` / ``ReLU`` sequence (what :func:`~spoil_torchrl.modules.make_value_network` builds) with
-boolean masks that carry no gradient, so the penalty's gradient costs exactly the products it needs; any other
+masks that carry no gradient (taken from detached layer outputs), so the penalty's gradient costs exactly the
+products it needs; any other
 network goes through autograd (:func:`torch.func.grad`). The two agree to float rounding (the sums run in
 another order), which is why the form is chosen per loss (``DICELoss.penalty_form``).
 """
