@@ -10,6 +10,10 @@ feasible return and cost over the episodes, and the share of episodes whose cost
 ``--every`` keeps every k-th checkpoint of a folder. ``safe-high`` is then the checkpoint with the best return
 whose mean cost is within the limit, ``unsafe-high`` the unconstrained run's last one, and the ``-medium`` types
 those near half of the ``-high`` returns (docs/experts.md).
+
+``--components`` adds, in a task that computes its constraints' own costs (SafetyPointCircle2: ``x_wall``,
+``y_wall``), a column per constraint: its mean episode cost and the share of episodes within the limit on it
+(for demonstrators trained against one constraint, ``docs/several_constraints.md``).
 """
 
 from __future__ import annotations
@@ -20,7 +24,9 @@ from pathlib import Path
 
 import torch
 
+from spoil_torchrl.data.constraint_costs import episode_constraint_costs
 from spoil_torchrl.data.episodes import episodes_from_arrays
+from spoil_torchrl.envs.cost_components import cost_components
 from spoil_torchrl.envs.rollout import rollout
 from spoil_torchrl.eval import mean_stderr, transition_episode_metrics
 from spoil_torchrl.tasks import get_env_task
@@ -51,6 +57,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=1, help="keep every k-th checkpoint of a folder")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--num-envs", type=int, default=8)
+    parser.add_argument("--components", action="store_true", help="a column per constraint's own cost")
     args = parser.parse_args()
     if args.episodes < 2 or args.every < 1:
         parser.error("--episodes must be >= 2 (a standard error needs two) and --every >= 1")
@@ -59,25 +66,40 @@ def main() -> None:
         task = get_env_task(args.env_id)
         files = checkpoints(args.paths, args.every)
         policies = [(path, *load_policy(path, env_id=args.env_id)) for path in files]
-    except (KeyError, FileNotFoundError, PolicyFileError) as error:
+        split = cost_components(args.env_id) if args.components else None
+    except (KeyError, ValueError, FileNotFoundError, PolicyFileError) as error:
         parser.error(str(error).strip("'\""))
     print(
         f"{args.env_id}: {args.episodes} sampled-action episodes per checkpoint, seed {args.seed}, "
         f"cost limit {task.cost_limit:g}\n"
     )
-    print("| checkpoint | frames | return | feasible return | cost | episodes over the limit |")
-    print("|---|---|---|---|---|---|")
+    header = ["checkpoint", "frames", "return", "feasible return", "cost", "episodes over the limit"]
     start = time.perf_counter()
     for path, actor, meta in policies:
         arrays = rollout(
-            args.env_id, actor, args.episodes, seed=args.seed, num_envs=args.num_envs, progress=False
+            args.env_id,
+            actor,
+            args.episodes,
+            seed=args.seed,
+            num_envs=args.num_envs,
+            progress=False,
+            components=split,
         )
-        metrics = transition_episode_metrics(episodes_from_arrays(arrays, source=str(path)), task.cost_limit)
+        episodes = episodes_from_arrays(arrays, source=str(path))
+        metrics = transition_episode_metrics(episodes, task.cost_limit)
         keys = ("return", "feasible_return", "cost")
         cells = [f"{m:.2f} ± {s:.2f}" for m, s in (mean_stderr(metrics[k]) for k in keys)]
         over = float((metrics["cost"] > task.cost_limit).double().mean())
+        cells.append(f"{100 * over:.0f} %")
+        parts = episode_constraint_costs(episodes) if split is not None else {}
+        for name in parts.keys():
+            within = float((parts[name] <= task.cost_limit).double().mean())
+            cells.append(f"{float(parts[name].mean()):.2f} ({100 * within:.0f} % within)")
+        if path is policies[0][0]:  # the constraints' columns are named by the first rollout
+            columns = [*header, *parts.keys()]
+            print("| " + " | ".join(columns) + " |\n" + "|---" * len(columns) + "|")
         frames = meta["info"].get("frames", "")
-        print(f"| {path.name} | {frames} | " + " | ".join(cells) + f" | {100 * over:.0f} % |", flush=True)
+        print(f"| {path.name} | {frames} | " + " | ".join(cells) + " |", flush=True)
     print(f"\n{time.perf_counter() - start:.0f} s")
 
 

@@ -472,3 +472,30 @@ def test_an_expert_can_train_against_one_constraints_own_cost():
     with pytest.raises(ValueError, match=r"constraints are \['x_wall', 'y_wall'\]"):
         collector.batch(actor, frames=10, seed=0)
     collector.close()
+
+
+@needs_safety_gymnasium
+def test_init_actor_starts_the_training_from_a_policy_and_refuses_another_shape(tmp_path):
+    """ppo.init_actor: the first batch is collected by the given policy's weights (its checkpoint holds them);
+    a policy of another width, or a missing one, is refused with the setting's name."""
+    from spoil_torchrl.envs import make_env
+
+    make = functools.partial(make_env, "SafetyPointCircle1-v0", seed=0)
+    tiny = dict(frames_per_batch=500, epochs=1, minibatch_size=250, checkpoint_every=1, hidden_cells=(8,))
+    train_ppo(make, 28, 2, PPOConfig(total_frames=1000, **tiny), tmp_path / "a", progress=False)
+    source = tmp_path / "a" / "ckpt_000001000.pt"  # trained for a batch: not what a fresh seed-1 actor is
+    config = PPOConfig(total_frames=500, seed=1, init_actor=str(source), **tiny)
+    train_ppo(make, 28, 2, config, tmp_path / "b", progress=False)
+    started = torch.load(tmp_path / "b" / "ckpt_000000500.pt", weights_only=True)["actor"]
+    given = torch.load(source, weights_only=True)["actor"]
+    assert all(torch.equal(started[k], given[k]) for k in given)
+    fresh = PPOConfig(total_frames=500, seed=1, **tiny)
+    train_ppo(make, 28, 2, fresh, tmp_path / "c", progress=False)
+    other = torch.load(tmp_path / "c" / "ckpt_000000500.pt", weights_only=True)["actor"]
+    assert not all(torch.equal(other[k], given[k]) for k in given)
+    wide = PPOConfig(total_frames=500, init_actor=str(source), **(tiny | {"hidden_cells": (16,)}))
+    with pytest.raises(ValueError, match=r"has hidden cells \[8\]"):
+        train_ppo(make, 28, 2, wide, tmp_path / "d", progress=False)
+    missing = PPOConfig(total_frames=500, init_actor="zoo:no-such-policy", **tiny)
+    with pytest.raises(ValueError, match="ppo.init_actor = 'zoo:no-such-policy'"):
+        train_ppo(make, 28, 2, missing, tmp_path / "e", progress=False, env_id="SafetyPointCircle1-v0")

@@ -11,6 +11,7 @@ from typing import Any
 
 import torch
 
+from spoil_torchrl.algorithms.constraints import constraint_roles_of, fit_constraint_supports
 from spoil_torchrl.algorithms.base import (
     BuildContext,
     PolicyTraining,
@@ -21,7 +22,6 @@ from spoil_torchrl.algorithms.base import (
     frozen_networks,
     train_discriminators,
 )
-from spoil_torchrl.data.constraint_costs import CONSTRAINT_ROLE_PREFIX
 from spoil_torchrl.modules import make_value_network
 from spoil_torchrl.objectives import (
     COptiDICELoss,
@@ -32,16 +32,10 @@ from spoil_torchrl.objectives import (
     safedice_auto_alpha,
     safedice_reward,
 )
-from spoil_torchrl.objectives.spoildice import check_supports_intersect
 
 
 def _value_network(cfg: Mapping[str, Any], context: BuildContext, **kwargs):
     return make_value_network(context.observation_dim, hidden_cells=tuple(cfg["hidden_cells"]), **kwargs)
-
-
-def constraint_roles_of(buffers) -> list[str]:
-    """The roles of the per-constraint safe sets in ``buffers`` (``safe_<name>``, in the dataset's order)."""
-    return [role for role in buffers.roles if role.startswith(CONSTRAINT_ROLE_PREFIX)]
 
 
 def pretrain_spoildice(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
@@ -75,39 +69,14 @@ def pretrain_spoildice_constraints(cfg: Mapping[str, Any], context: BuildContext
     per constraint (Eq. 13 on D_S^k), and D_U annotated once with ``log_ratio_performant`` and ``safe_support``
     holding the K indicators ``[n, K]`` (each also as ``safe_support_<name>``). D_P gets the indicator of the
     intersection as ``safe_support`` (diagnostics: the share of D_P inside every support). Refuses supports with
-    no transition of D_U in common (:func:`~spoil_torchrl.objectives.check_supports_intersect`)."""
+    no transition of D_U in common (:func:`~spoil_torchrl.algorithms.constraints.fit_constraint_supports`)."""
     buffers = context.buffers
-    roles = constraint_roles_of(buffers)
-    penalties = dict(cfg["discriminator"]["gradient_penalty"])
-    settings = dict(cfg["discriminator"]) | {
-        "gradient_penalty": penalties | dict.fromkeys(roles, penalties["safe"])
-    }
-    discriminators = train_discriminators(settings, context, positives=("performant", *roles))
-    buffers.annotate("unlabeled", discriminators["performant"].log_ratio_module("log_ratio_performant"))
-    columns, diagnostics = [], {}
-    for role in roles:
-        name = role.removeprefix(CONSTRAINT_ROLE_PREFIX)
-        key = f"safe_support_{name}"
-        support = fit_support(discriminators[role], buffers, role, float(cfg["kappa"]), key)
-        for target in ("unlabeled", "performant"):
-            buffers.annotate(target, support)
-        columns.append(key)
-        diagnostics |= {
-            f"support_share_unlabeled_{name}": float(buffers["unlabeled"].storage[:][key].float().mean()),
-            f"support_threshold_{name}": float(support.threshold),
-        }
-    buffers.annotate("unlabeled", "safe_support", lambda td: torch.cat([td[c] for c in columns], -1))
-    buffers.annotate(  # D_P: inside every support or not
-        "performant",
-        "safe_support",
-        lambda td: torch.cat([td[c] for c in columns], -1).prod(-1, keepdim=True),
+    discriminators, columns, diagnostics = fit_constraint_supports(
+        cfg, context, stacked=("unlabeled",), intersected=("performant",), positives=("performant",)
     )
+    buffers.annotate("unlabeled", discriminators["performant"].log_ratio_module("log_ratio_performant"))
     unlabeled = buffers["unlabeled"].storage[:]
-    check_supports_intersect(unlabeled["safe_support"], "the annotated D_U's safe_support")
-    diagnostics |= {
-        "support_share_unlabeled": float(unlabeled["safe_support"].prod(-1).float().mean()),
-        "log_ratio_performant_mean": float(unlabeled["log_ratio_performant"].float().mean()),
-    }
+    diagnostics["log_ratio_performant_mean"] = float(unlabeled["log_ratio_performant"].float().mean())
     keys = {
         "unlabeled": ["log_ratio_performant", "safe_support", *columns],
         "performant": ["safe_support", *columns],

@@ -19,6 +19,7 @@ from spoil_torchrl.algorithms.base import (
     train_discriminators,
     weighted_bc_stage,
 )
+from spoil_torchrl.algorithms.constraints import constraint_roles_of, fit_constraint_supports
 from spoil_torchrl.data.labeling import episode_stats
 from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.modules import make_discriminator
@@ -38,12 +39,23 @@ def pretrain_fbc(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
     ``cfg["support"] = "oracle"`` (``+algo.support=oracle``; default ``"estimated"``) is an ablation that no
     method can run on real data: the weight is 1 on D_P's trajectories whose true episode cost is within the
     limit (``context.constraint``) and 0 elsewhere, i.e. BC on D_P's safe trajectories, the filter FBC's
-    estimate approximates. It measures what the estimate's errors cost."""
+    estimate approximates. It measures what the estimate's errors cost.
+
+    With several constraints (roles ``safe_<name>``, ``docs/several_constraints.md``) the filter is the
+    intersection of the K estimated supports, one C_S^k and kappa cut per safe set
+    (:func:`~spoil_torchrl.algorithms.constraints.fit_constraint_supports`): BC on D_P's transitions inside every
+    support."""
     buffers = context.buffers
     support = cfg.get("support", "estimated")
     if support not in ("estimated", "oracle"):
         raise SettingsError(f"algo.support = {support!r}: expected estimated or oracle")
     networks = {}
+    if constraint_roles_of(buffers):
+        if support == "oracle":
+            raise SettingsError("algo.support = oracle takes the task's one cost; it does not apply to dataset.constraints")
+        discriminators, columns, diagnostics = fit_constraint_supports(cfg, context, intersected=("performant",))
+        keys = {"performant": ["safe_support", *columns]}
+        return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
     if support == "oracle":
         if context.constraint is None:
             raise ValueError(

@@ -102,13 +102,24 @@ def constraint_safe_ids(
 
 
 def constraint_roles(
-    episodes: TensorDict, cfg: Mapping, *, cost_threshold: float, seed: int
+    episodes: TensorDict,
+    cfg: Mapping,
+    *,
+    cost_threshold: float,
+    seed: int,
+    safe: torch.Tensor | None = None,
+    pools: Mapping[str, torch.Tensor] | None = None,
 ) -> dict[str, torch.Tensor]:
     """One safe set per constraint of ``cfg["constraints"]`` (``docs/several_constraints.md``): the role
     ``safe_<name>`` holds ``cfg["n_safe_per_constraint"]`` (default ``n_safe``) episodes drawn (seeded) from those
     within that constraint's threshold (``cfg["constraint_thresholds"][name]``, default the cost threshold).
     ``{}`` when ``cfg`` names no constraint. D_S stays the scheme's: the demonstrations safe on the task's cost,
     the merged label.
+
+    ``cfg["constraint_pools"]`` (``{name: pool}``, with a collected file's typed ``pools``) models annotators who
+    each certify one constraint: D_S^k is then D_S (``safe``, the demonstrations certified on every constraint,
+    which must be within every threshold) together with ``n_safe_per_constraint`` episodes of the typed pool
+    ``pool`` within k's threshold.
 
     Examples:
         >>> td = TensorDict({"episode": torch.arange(4), "next": {CONSTRAINTS_KEY: {
@@ -118,6 +129,11 @@ def constraint_roles(
         >>> roles = constraint_roles(td, cfg, cost_threshold=1.0, seed=0)
         >>> sorted(roles), sorted(roles["safe_y_wall"].tolist())
         (['safe_x_wall', 'safe_y_wall'], [1, 2])
+        >>> cfg |= {"n_safe_per_constraint": 1, "constraint_pools": {"x_wall": "x", "y_wall": "y"}}
+        >>> pools = {"x": torch.tensor([3]), "y": torch.tensor([1])}
+        >>> roles = constraint_roles(td, cfg, cost_threshold=1.0, seed=0, safe=torch.tensor([2]), pools=pools)
+        >>> roles["safe_x_wall"].tolist(), roles["safe_y_wall"].tolist()
+        ([2, 3], [1, 2])
     """
     names = list(cfg.get("constraints") or [])
     if not names:
@@ -130,14 +146,43 @@ def constraint_roles(
             f"dataset.constraint_thresholds names {unknown}, which dataset.constraints ({names}) does not have"
         )
     thresholds = {name: float(given.get(name, cost_threshold)) for name in names}
-    pools = constraint_safe_ids(episodes, names, thresholds, source=source)
+    eligible = constraint_safe_ids(episodes, names, thresholds, source=source)
+    typed = dict(cfg.get("constraint_pools") or {})
+    if typed:
+        eligible = _typed_constraint_pools(episodes, names, typed, eligible, thresholds, safe, pools, source)
     k = int(cfg.get("n_safe_per_constraint") or cfg["n_safe"])
     roles = {}
     for i, name in enumerate(names):
-        if pools[name].numel() < k:
+        if eligible[name].numel() < k:
+            where = f"of pool {typed[name]!r} " if typed else ""
             raise DatasetError(
-                f"{source}: {pools[name].numel()} episodes are within constraint {name!r}'s threshold "
+                f"{source}: {eligible[name].numel()} episodes {where}are within constraint {name!r}'s threshold "
                 f"{thresholds[name]}, fewer than n_safe_per_constraint={k}; lower it"
             )
-        roles[f"{CONSTRAINT_ROLE_PREFIX}{name}"] = draw(pools[name], k, seed=seed + 10 + i)
+        drawn = draw(eligible[name], k, seed=seed + 10 + i)
+        roles[f"{CONSTRAINT_ROLE_PREFIX}{name}"] = drawn if not typed else torch.sort(torch.cat([safe, drawn])).values
     return roles
+
+
+def _typed_constraint_pools(episodes, names, typed, eligible, thresholds, safe, pools, source):
+    """Each constraint's eligible episodes restricted to its typed pool (``cfg["constraint_pools"]``), after
+    checking the mapping, the pools and that the merged D_S ``safe`` is within every threshold."""
+    if sorted(typed) != sorted(names):
+        raise DatasetError(
+            f"dataset.constraint_pools names {sorted(typed)}; it needs one typed pool for each of dataset.constraints "
+            f"{names}"
+        )
+    if pools is None or safe is None:
+        raise DatasetError(f"{source}: dataset.constraint_pools needs a collected file's typed pools (scheme=controlled)")
+    missing = sorted({p for p in typed.values() if p not in pools})
+    if missing:
+        raise DatasetError(f"{source}: dataset.constraint_pools names the pools {missing}; the file has {sorted(pools)}")
+    costs = episode_constraint_costs(episodes)
+    for name in names:
+        over = safe[costs[name][safe] > thresholds[name]]
+        if over.numel():
+            raise DatasetError(
+                f"{source}: D_S's episodes {over.tolist()} exceed constraint {name!r}'s threshold "
+                f"{thresholds[name]}, so they cannot join its safe set"
+            )
+    return {name: eligible[name][torch.isin(eligible[name], pools[typed[name]])] for name in names}

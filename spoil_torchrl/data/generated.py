@@ -14,6 +14,9 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
   that D_U can hold 2,000 trajectories; pick D_S / D_P / D_U with
   :func:`~spoil_torchrl.data.controlled_mix` on :func:`~spoil_torchrl.data.collect.segment_pools`.
 * ``point-circle2-controlled`` -- the same four pools for SafetyPointCircle2-v0.
+* ``point-circle2-walls`` -- PointCircle2 with each wall's own cost (``cost_x_wall``, ``cost_y_wall``): the four
+  typed pools and two demonstrators each trained against one wall's cost (``x-wall-safe``, ``y-wall-safe``),
+  300 episodes each, for several constraints (``docs/several_constraints.md``).
 * ``half-cheetah-velocity-controlled`` -- the same four pools for SafetyHalfCheetahVelocity-v1 (2,000 episodes
   of 1,000 steps).
 * ``hopper-velocity-controlled`` -- the same four pools for SafetyHopperVelocity-v1 (2,000 episodes of at most
@@ -107,6 +110,14 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             "SafetyPointCircle2-v0",
             _typed(500),
             "controlled PointCircle2 pools: 500 episodes of each policy type (paper F.2)",
+        ),
+        GeneratedDataset(
+            "point-circle2-walls",
+            "SafetyPointCircle2-v0",
+            _typed(300) + tuple(Segment(wall, f"zoo:{wall}", 300) for wall in ("x-wall-safe", "y-wall-safe")),
+            "PointCircle2 pools with each wall's own cost: the four policy types and two demonstrators trained "
+            "against one wall's cost (x-wall-safe, y-wall-safe), 300 episodes each",
+            components=True,
         ),
         GeneratedDataset(
             "half-cheetah-velocity-controlled",

@@ -166,7 +166,9 @@ def controlled_mix(
     D_S has ``n_safe`` trajectories, a share ``performance`` of them safe-high and the rest safe-medium; D_P has
     ``n_performant``, a share ``safeness`` safe-high and the rest unsafe-high (shares are rounded to whole
     trajectories). D_S and D_P never share a trajectory. D_U holds ``n_unlabeled`` trajectories drawn equally
-    from the four pools (the remainder from the first ones), or every pooled trajectory when ``None``.
+    from the pools (the remainder from the first ones), or every pooled trajectory when ``None``. Pools beyond
+    the four (e.g. demonstrators safe on one of several constraints, ``docs/several_constraints.md``) join D_U
+    only, after the four, in the order given.
 
     With ``episode_cost`` (indexed by episode id) and ``cost_limit``, D_S and D_P take a safe type's
     trajectories only among its episodes within the limit and an unsafe type's only among those over it, so
@@ -214,14 +216,16 @@ def controlled_mix(
             order[name] = order[name][over if name.startswith("unsafe") else ~over]
     safe = torch.cat([take("safe-high", s_high), take("safe-medium", s_medium)])
     performant = torch.cat([take("safe-high", p_high, offset=s_high), take("unsafe-high", p_unsafe)])
+    names = [*POOLS, *(p for p in pools if p not in POOLS)]
     if n_unlabeled is None:
-        unlabeled = torch.cat([pools[p] for p in POOLS])
+        unlabeled = torch.cat([pools[p] for p in names])
     else:
-        per_pool = [n_unlabeled // 4 + (i < n_unlabeled % 4) for i in range(4)]
+        n = len(names)
+        per_pool = [n_unlabeled // n + (i < n_unlabeled % n) for i in range(n)]
         unlabeled = torch.cat(
             [
                 pools[p][torch.randperm(pools[p].numel(), generator=generator)[:k]]
-                for p, k in zip(POOLS, per_pool, strict=True)
+                for p, k in zip(names, per_pool, strict=True)
             ]
         )
         if unlabeled.numel() != n_unlabeled:

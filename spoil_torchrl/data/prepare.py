@@ -136,7 +136,8 @@ def select_roles(
       ``role_unlabeled`` episode flags); ``seed`` and the ``n_*`` sizes do not apply.
 
     ``cfg["constraints"]`` (names of the data's per-constraint costs, ``docs/several_constraints.md``) adds one
-    safe set per constraint, the roles ``safe_<name>`` (:func:`~spoil_torchrl.data.constraint_costs.constraint_roles`).
+    safe set per constraint, the roles ``safe_<name>`` (:func:`~spoil_torchrl.data.constraint_costs.constraint_roles`);
+    with ``cfg["constraint_pools"]`` (scheme ``"controlled"``) each is D_S with episodes of one typed pool.
 
     ``cfg["corruption"]`` (default 0) makes D_S noisy as the paper's G.6 does: that share of its trajectories is
     replaced by unsafe ones (episode cost above ``cost_threshold``) drawn from D_U outside D_S and D_P (seeded).
@@ -154,7 +155,10 @@ def select_roles(
     if unknown:
         raise ValueError(f"unknown extra roles {unknown}; available: {EXTRA_ROLES}")
     roles = _base_roles(episodes, cfg, cost_threshold=cost_threshold, metadata=metadata, seed=seed)
-    roles |= constraint_roles(episodes, cfg, cost_threshold=cost_threshold, seed=seed)
+    typed = segment_pools(dict(metadata)) if cfg.get("constraint_pools") and scheme == "controlled" else None
+    roles |= constraint_roles(
+        episodes, cfg, cost_threshold=cost_threshold, seed=seed, safe=roles["safe"], pools=typed
+    )
     if float(cfg.get("corruption") or 0.0) != 0.0:
         roles["safe"] = _corrupted_safe(episodes, roles, float(cfg["corruption"]), cost_threshold, seed)
     if "nonpreferred" in extra_roles:

@@ -70,6 +70,10 @@ class PPOConfig:
     ``cost_component`` (with ``num_envs`` > 1) trains against one constraint's own cost instead of the task's
     (:mod:`spoil_torchrl.envs.cost_components`, e.g. ``x_wall`` in SafetyPointCircle2): a demonstrator safe on
     that constraint only.
+    ``init_actor`` starts the actor from a policy instead of at random (fine-tuning; the critics start afresh):
+    a policy or PPO checkpoint file, or ``zoo:<name>`` for a committed policy of the task, with the same
+    ``hidden_cells`` and observation standardisation. E.g. a demonstrator that keeps one constraint only, tuned
+    from the unconstrained expert with a penalty on that constraint's cost (``docs/several_constraints.md``).
     ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
     (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
     TorchRL environment); ``frames_per_batch`` must split evenly over them.
@@ -100,6 +104,7 @@ class PPOConfig:
     advantage_standardization: str = "combined"
     target_kl: float | None = None
     lr_decay: bool = False
+    init_actor: str | None = None
     seed: int = 0
     extra: dict = field(default_factory=dict)
 
@@ -223,6 +228,31 @@ class EpisodeTracker:
         return finished
 
 
+def load_initial_actor(learner: PPOLearner, config: PPOConfig, env_id: str | None) -> None:
+    """Copy the weights of the policy ``config.init_actor`` (a file, or ``zoo:<name>`` of ``env_id``) into
+    ``learner``'s actor; a policy of another shape, task or observation standardisation is refused."""
+    from spoil_torchrl.zoo.policy_files import PolicyFileError, load_policy, zoo_policy
+
+    source = str(config.init_actor)
+    try:
+        if source.startswith("zoo:"):
+            if env_id is None:
+                raise ValueError(f"ppo.init_actor = {source!r} needs train_ppo(..., env_id=<the task>)")
+            path = zoo_policy(env_id, source.removeprefix("zoo:"))
+        else:
+            path = Path(source)
+        actor, meta = load_policy(path, env_id=env_id)
+    except PolicyFileError as err:
+        raise ValueError(f"ppo.init_actor = {source!r}: {err}") from None
+    if tuple(meta["hidden_cells"]) != config.hidden_cells or meta["observation_norm"] != config.normalize_observations:
+        raise ValueError(
+            f"ppo.init_actor = {source!r} has hidden cells {list(meta['hidden_cells'])} and observation_norm "
+            f"{meta['observation_norm']}; this run has ppo.hidden_cells={list(config.hidden_cells)}, "
+            f"ppo.normalize_observations={config.normalize_observations}"
+        )
+    learner.actor.load_state_dict(actor.state_dict())
+
+
 def collect_batch(env: TransformedEnv, actor: nn.Module, config: PPOConfig, index: int) -> TensorDict:
     """Batch ``index``: ``frames_per_batch`` steps of ``actor``'s sampled actions from a reset seeded with
     :func:`batch_seed` (episodes end and reset inside; one still running at the end is cut there)."""
@@ -309,6 +339,8 @@ def train_ppo(
     if state is not None:
         learner.load_training_state(state["learner"])
         torch.set_rng_state(state["rng"])
+    elif config.init_actor is not None:
+        load_initial_actor(learner, config, env_id)
     log: list[dict] = [] if state is None else list(state["log"])
     first = 0 if state is None else int(state["batches"])
     results = {"status": "training", "config": asdict(config), "stack": current_stack(), "frames": 0}

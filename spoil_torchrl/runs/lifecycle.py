@@ -193,8 +193,14 @@ def _record(run: _Loaded) -> RunInputs:
 
 def evaluated_constraints(cfg: DictConfig, env_id: str, cost_threshold: float) -> dict[str, float] | None:
     """The thresholds of ``dataset.constraints`` (``dataset.constraint_thresholds``, else the cost threshold)
-    for the evaluator, when the task computes per-constraint costs (``None`` otherwise: the task's cost only)."""
-    names = list(OmegaConf.select(cfg, "dataset.constraints", default=None) or [])
+    for the evaluator, when the task computes per-constraint costs (``None`` otherwise: the task's cost only).
+    ``+eval.constraints=[...]`` names them for a run that trains on the task's cost alone (e.g. the merged
+    label beside a run with one safe set per constraint)."""
+    names = list(
+        OmegaConf.select(cfg, "dataset.constraints", default=None)
+        or OmegaConf.select(cfg, "eval.constraints", default=None)
+        or []
+    )
     if not names or env_id not in COST_COMPONENTS:
         return None
     given = dict(OmegaConf.select(cfg, "dataset.constraint_thresholds", default=None) or {})

@@ -35,6 +35,8 @@ IMPLIED_SETTINGS = {
     "dataset.constraints": None,
     "dataset.n_safe_per_constraint": None,
     "dataset.constraint_thresholds": None,
+    "dataset.constraint_pools": None,
+    "eval.constraints": None,
 }
 
 

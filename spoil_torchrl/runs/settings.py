@@ -113,6 +113,10 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
         "null or a list of distinct constraint names (the data's cost_<name> components)",
     ),
     "n_safe_per_constraint": (_optional(_positive_int), "null or an integer >= 1"),
+    "constraint_pools": (
+        lambda v: v is None or (isinstance(v, Mapping) and all(isinstance(x, str) for x in v.values())),
+        "null or a mapping of constraint names to typed pools of the file",
+    ),
     "constraint_thresholds": (
         lambda v: v is None or (isinstance(v, Mapping) and all(_non_negative(x) for x in v.values())),
         "null or a mapping of constraint names to thresholds >= 0",
@@ -127,7 +131,7 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
 }
 
 #: The algorithms that take ``dataset.constraints`` (several safety constraints, one safe set each).
-CONSTRAINED_ALGORITHMS = ("spoildice",)
+CONSTRAINED_ALGORITHMS = ("spoildice", "fbc")
 
 #: Top-level and nested settings that are switches. Hydra keeps ``no`` / ``off`` / ``0`` as they are typed
 #: (a string, an integer), and a string is always true, so anything but true or false is refused.

@@ -130,6 +130,30 @@ def test_each_constraint_gets_a_safe_set_of_its_own_and_bad_choices_are_named():
         )
 
 
+def test_typed_pools_give_each_constraint_the_merged_safe_set_and_its_own_annotators_episodes():
+    episodes = episodes_from_arrays(_arrays(cost_x_wall=X_WALL, cost_y_wall=Y_WALL))
+    cfg = {
+        "constraints": ["x_wall", "y_wall"],
+        "n_safe": 1,
+        "constraint_pools": {"x_wall": "x-only", "y_wall": "y-only"},
+    }
+    pools = {"x-only": torch.tensor([1]), "y-only": torch.tensor([0, 1])}  # episode 1 is over y's threshold
+    merged = torch.tensor([2])  # safe on both walls: in every constraint's safe set
+    roles = constraint_roles(episodes, cfg, cost_threshold=0.0, seed=0, safe=merged, pools=pools)
+    assert roles["safe_x_wall"].tolist() == [1, 2] and roles["safe_y_wall"].tolist() == [0, 2]
+    bad = [
+        ({"constraint_pools": {"x_wall": "x-only"}}, {}, r"one typed pool for each of dataset.constraints"),
+        ({"constraint_pools": {"x_wall": "x-only", "y_wall": "z"}}, {}, r"names the pools \['z'\]"),
+        ({}, {"pools": None}, "needs a collected file's typed pools"),
+        ({}, {"safe": torch.tensor([0])}, r"D_S's episodes \[0\] exceed constraint 'x_wall'"),
+        ({"n_safe_per_constraint": 2}, {}, "1 episodes of pool 'x-only' are within constraint 'x_wall'"),
+    ]
+    for change, given, match in bad:
+        with pytest.raises(DatasetError, match=match):
+            kwargs = {"safe": merged, "pools": pools} | given
+            constraint_roles(episodes, cfg | change, cost_threshold=0.0, seed=0, **kwargs)
+
+
 def test_point_circle2_records_each_walls_cost_and_the_task_cost_is_their_union(tmp_path):
     """Collected with components, a file carries x_wall / y_wall per step, computed from the agent's position
     after the step, and the simulator's own cost is exactly their maximum (its Sigwalls cost is the union)."""

@@ -156,3 +156,14 @@ def test_an_episode_at_exactly_the_threshold_is_safe_and_sets_the_return_cut():
     assert ilsp_return_threshold(stats, cost_threshold=10.0, return_quantile=1.0) == 9.0
     roles = label_ilsp(stats, cost_threshold=10.0, return_quantile=1.0)
     assert roles["safe"].tolist() == [0, 1, 2] and roles["performant"].tolist() == [2, 3]
+
+
+def test_controlled_pools_beyond_the_four_join_d_u_only_and_leave_a_four_pool_mix_unchanged():
+    pools = {name: torch.arange(10) + 10 * i for i, name in enumerate(POOLS)}
+    kwargs = dict(n_safe=4, performance=0.5, n_performant=4, safeness=0.5, seed=3)
+    four = controlled_mix(pools, **kwargs, n_unlabeled=8)
+    six = controlled_mix(pools | {"x": torch.arange(40, 45), "y": torch.arange(45, 50)}, **kwargs, n_unlabeled=12)
+    assert torch.equal(four["safe"], six["safe"]) and torch.equal(four["performant"], six["performant"])
+    assert int((six["unlabeled"] >= 40).sum()) == 4  # two of each extra pool, as of the four
+    every = controlled_mix(pools | {"x": torch.arange(40, 45)}, **kwargs)["unlabeled"]
+    assert every.tolist() == list(range(45))
