@@ -11,6 +11,10 @@ it with ``minari.load_dataset``; a Minari dataset with per-step costs can be tra
   (entry 0 belongs to the reset and is 0; entry ``t + 1`` is the cost of step ``t``). A dataset whose
   ``infos["cost"]`` has ``T`` entries is read too; one without costs cannot be used (IL-SP evaluates and
   labels by the true cost) and is refused with a clear error;
+* each constraint's own cost, when the data carry several (``docs/several_constraints.md``), is
+  ``infos["cost_<name>"]``, laid out as ``infos["cost"]``, and loads as the ``cost_<name>`` arrays of a
+  DSRL-layout file; Safety-Gymnasium's ``cost_sum`` (the total, the task's cost) is not a constraint and is
+  skipped. Every episode must carry the same constraints;
 * an episode whose next observation differs from the following observation within the episode (not the case
   for data collected step by step) also carries ``infos["next_observation"]`` (``T + 1`` rows, row 0 unused);
 * the episode metadata holds ``policy_type`` (the label of the policy that collected the episode, when the
@@ -35,8 +39,11 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from spoil_torchrl.data.episodes import DSRL_KEYS, DatasetError, episodes_from_arrays
+from spoil_torchrl.data.episodes import CONSTRAINTS_KEY, DSRL_KEYS, DatasetError, episodes_from_arrays
+from spoil_torchrl.envs.cost_components import COMPONENT_PREFIX
 
+#: Safety-Gymnasium's info entry for the sum of a task's costs: the task's cost, not one constraint's.
+TOTAL_COST_INFO = "cost_sum"
 INSTALL_HINT = "the minari package is not installed: pip install 'spoil_torchrl[minari]'"
 #: Key of this library's entry in a Minari dataset's metadata.
 METADATA_KEY = "spoil_torchrl"
@@ -171,6 +178,10 @@ def write_minari(
         next_obs = step["next", "observation"].numpy()
         cost = step["next", "cost"].reshape(-1).numpy()
         infos = {"cost": np.concatenate([np.zeros(1, cost.dtype), cost])}
+        parts = step.get(("next", CONSTRAINTS_KEY), None)
+        for name in [] if parts is None else parts.keys():
+            part = parts[name].reshape(-1).numpy()
+            infos[COMPONENT_PREFIX + name] = np.concatenate([np.zeros(1, part.dtype), part])
         if not np.array_equal(next_obs[:-1], obs[1:]):
             infos["next_observation"] = np.concatenate([np.zeros_like(next_obs[:1]), next_obs])
         buffers.append(
@@ -295,6 +306,7 @@ def read_minari_episodes(dataset_id: str, *, download: bool = True) -> dict[str,
                 f"{source}: the {name} space is {type(space).__name__}; only Box spaces are supported"
             )
     columns: dict[str, list[np.ndarray]] = {k: [] for k in DSRL_KEYS}
+    constraints = None
     for episode in dataset.iterate_episodes():
         n = len(episode)
         infos = episode.infos or {}
@@ -303,6 +315,17 @@ def read_minari_episodes(dataset_id: str, *, download: bool = True) -> dict[str,
                 f"{source}: episode {episode.id} has no infos['cost']; IL-SP needs the per-step cost "
                 "(record it as info['cost'] when collecting)"
             )
+        keys = sorted(k for k in infos if k.startswith(COMPONENT_PREFIX) and k != TOTAL_COST_INFO)
+        if constraints is None:
+            constraints = keys
+            columns |= {k: [] for k in keys}
+        elif keys != constraints:
+            raise DatasetError(
+                f"{source}: episode {episode.id} carries the constraint costs {keys}, the first episode "
+                f"{constraints}; every episode needs the same"
+            )
+        for key in keys:
+            columns[key].append(_per_step(infos[key], n, key, source).reshape(n))
         obs = np.asarray(episode.observations).reshape(n + 1, -1)
         columns["observations"].append(obs[:-1])
         if "next_observation" in infos:

@@ -188,3 +188,43 @@ def test_prepare_dataset_uses_stored_roles_and_policy_pools(dsrl_file):
     write_minari(ours.episodes, "test/noroles-v0", metadata=ours.metadata)
     with pytest.raises(DatasetError, match="dataset.scheme=stored, but the dataset stores no 'safe' role"):
         prepare_dataset({"source": "minari:test/noroles-v0", "scheme": "stored"}, seed=0)
+
+
+def test_each_constraints_cost_travels_as_an_info_entry_and_loads_back(tmp_path):
+    rng = np.random.default_rng(1)
+    n = sum(LENGTHS)
+    x, y = rng.integers(0, 2, n).astype(np.float32), rng.integers(0, 2, n).astype(np.float32)
+    arrays = make_arrays(LENGTHS, ENDS, obs_dim=28, costs=np.maximum(x, y))
+    arrays |= {"cost_x_wall": x, "cost_y_wall": y}
+    ours = load_episodes(f"file:{write_dsrl_file(tmp_path / 'walls.hdf5', arrays, metadata=METADATA)}")
+    write_minari(ours, "test/walls-v0", metadata=METADATA)
+    episode = minari.load_dataset("test/walls-v0")[3]
+    assert sorted(k for k in episode.infos if k.startswith("cost_")) == ["cost_x_wall", "cost_y_wall"]
+    assert episode.infos["cost_y_wall"][0] == 0 and episode.infos["cost_y_wall"].shape == (LENGTHS[3] + 1,)
+    back = load_episodes("minari:test/walls-v0")
+    for name in ("x_wall", "y_wall"):
+        assert torch.equal(back["next", "constraint_costs", name], ours["next", "constraint_costs", name])
+    # Safety-Gymnasium's total is not a constraint; episodes that disagree on their constraints are refused
+    import gymnasium
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    def buffer(k, infos):
+        return EpisodeBuffer(
+            id=k,
+            observations=np.zeros((3, 2), np.float32),
+            actions=np.zeros((2, 1), np.float32),
+            rewards=np.zeros(2),
+            terminations=np.zeros(2, bool),
+            truncations=np.array([False, True]),
+            infos={"cost": np.zeros(3)} | infos,
+        )
+
+    box = gymnasium.spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
+    act = gymnasium.spaces.Box(-1, 1, shape=(1,), dtype=np.float32)
+    summed = [buffer(0, {"cost_sum": np.zeros(3), "cost_a": np.zeros(3)})]
+    minari.create_dataset_from_buffers("test/sum-v0", summed, observation_space=box, action_space=act)
+    assert list(load_episodes("minari:test/sum-v0")["next", "constraint_costs"].keys()) == ["a"]
+    mixed = [buffer(0, {"cost_a": np.zeros(3)}), buffer(1, {"cost_b": np.zeros(3)})]
+    minari.create_dataset_from_buffers("test/mixed-v0", mixed, observation_space=box, action_space=act)
+    with pytest.raises(DatasetError, match=r"episode 1 carries the constraint costs \['cost_b'\]"):
+        load_episodes("minari:test/mixed-v0")
