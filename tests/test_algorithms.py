@@ -134,3 +134,34 @@ def test_a_stored_pretraining_rebuilds_the_same_main_stage_without_training(tiny
     wrong = Pretraining({"unlabeled": {"safe_support": stage.annotations["unlabeled"]["safe_support"][:5]}})
     with pytest.raises(ValueError, match="'safe_support' has 5 rows, but role 'unlabeled' stores"):
         wrong.apply(fresh)
+
+
+def test_one_constraint_through_the_per_constraint_path_is_todays_spoildice_bit_for_bit(tiny_pc1_dataset):
+    """K = 1 (docs/several_constraints.md): a single safe set given as the constraint role ``safe_a`` (one C_S^k,
+    one kappa cut, SpoilDICELoss(constraints=1)) trains the same networks as today's SpoilDICE given it as D_S,
+    bit for bit: pre-training, annotations, and the dual and policy after 30 steps."""
+    episodes = load_episodes(f"file:{tiny_pc1_dataset}")
+    runs = {}
+    for safe_role in ("safe", "safe_a"):
+        roles = {
+            safe_role: torch.arange(0, 3),
+            "performant": torch.arange(6, 9),
+            "unlabeled": torch.arange(12),
+        }
+        buffers = DualDemoBuffers(episodes, roles, batch_size=128, seed=0)
+        torch.manual_seed(0)
+        training = ALGORITHMS["spoildice"](
+            _spoildice_cfg(kappa=0.1), BuildContext(buffers, 28, 2, progress=False)
+        )
+        for _ in range(30):
+            training.stepper.step(None, buffers.sample())
+        runs[safe_role] = (buffers["unlabeled"].storage[:], training)
+    (plain, ours), (per_constraint, theirs) = runs["safe"], runs["safe_a"]
+    assert torch.equal(plain["safe_support"], per_constraint["safe_support"])
+    assert plain["safe_support"].float().mean() < 1.0  # the cut drops some of D_U
+    assert torch.equal(plain["log_ratio_performant"], per_constraint["log_ratio_performant"])
+    assert torch.equal(ours.dice.lagrange.reshape(-1), theirs.dice.lagrange.reshape(-1))
+    assert float(ours.dice.lagrange.detach().reshape(-1)[0]) != 0.0  # it moved
+    for mine, other in ((ours.policy_loss, theirs.policy_loss), (ours.dice, theirs.dice)):
+        a, b = mine.state_dict(), other.state_dict()
+        assert a.keys() == b.keys() and all(torch.equal(a[k].reshape(-1), b[k].reshape(-1)) for k in a)

@@ -145,7 +145,9 @@ def _two_constraint_file(source, target):
     return write_dsrl_file(target, arrays, metadata=read_metadata(source))
 
 
-def test_spoildice_and_fbc_with_two_constraints_end_to_end_and_other_methods_refuse_them(tmp_path, tiny_pc1_dataset):
+def test_spoildice_and_fbc_with_two_constraints_end_to_end_and_other_methods_refuse_them(
+    tmp_path, tiny_pc1_dataset
+):
     dataset = _two_constraint_file(tiny_pc1_dataset, tmp_path / "two.hdf5")
     run_dir = tmp_path / "run"
     proc, results = _dsrl_recipe(run_dir, dataset, "+dataset.constraints=[a,b]")
@@ -171,7 +173,9 @@ def test_spoildice_and_fbc_with_two_constraints_end_to_end_and_other_methods_ref
     assert proc.returncode == 2 and "taken by algo=spoildice | fbc only" in proc.stderr
     proc, results = _dsrl_recipe(tmp_path / "fbc", dataset, "+dataset.constraints=[a,b]", "algo=fbc")
     diagnostics = results["diagnostics"]
-    assert results["status"] == "finished" and {"support_threshold_a", "support_threshold_b"} <= set(diagnostics)
+    assert results["status"] == "finished" and {"support_threshold_a", "support_threshold_b"} <= set(
+        diagnostics
+    )
     assert diagnostics["support_share_performant"] <= min(  # FBC's filter: D_P inside both supports
         diagnostics["support_share_performant_a"], diagnostics["support_share_performant_b"]
     )

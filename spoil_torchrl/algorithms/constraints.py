@@ -64,7 +64,9 @@ def fit_constraint_supports(
         )
     first = (*stacked, *intersected)[0]
     data = buffers[first].storage[:]
-    check_supports_intersect(torch.cat([data[c] for c in columns], -1), f"the annotated {first}'s safe supports")
+    check_supports_intersect(
+        torch.cat([data[c] for c in columns], -1), f"the annotated {first}'s safe supports"
+    )
     for target in (*stacked, *intersected):
         inside = buffers[target].storage[:]["safe_support"].prod(-1).float().mean()
         diagnostics[f"support_share_{target}"] = float(inside)

@@ -11,7 +11,6 @@ from typing import Any
 
 import torch
 
-from spoil_torchrl.algorithms.constraints import constraint_roles_of, fit_constraint_supports
 from spoil_torchrl.algorithms.base import (
     BuildContext,
     PolicyTraining,
@@ -22,6 +21,7 @@ from spoil_torchrl.algorithms.base import (
     frozen_networks,
     train_discriminators,
 )
+from spoil_torchrl.algorithms.constraints import constraint_roles_of, fit_constraint_supports
 from spoil_torchrl.modules import make_value_network
 from spoil_torchrl.objectives import (
     COptiDICELoss,

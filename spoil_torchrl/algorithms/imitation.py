@@ -52,8 +52,12 @@ def pretrain_fbc(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
     networks = {}
     if constraint_roles_of(buffers):
         if support == "oracle":
-            raise SettingsError("algo.support = oracle takes the task's one cost; it does not apply to dataset.constraints")
-        discriminators, columns, diagnostics = fit_constraint_supports(cfg, context, intersected=("performant",))
+            raise SettingsError(
+                "algo.support = oracle takes the task's one cost; it does not apply to dataset.constraints"
+            )
+        discriminators, columns, diagnostics = fit_constraint_supports(
+            cfg, context, intersected=("performant",)
+        )
         keys = {"performant": ["safe_support", *columns]}
         return Pretraining.of(buffers, keys, diagnostics, frozen_networks(discriminators))
     if support == "oracle":

@@ -160,7 +160,9 @@ def constraint_roles(
                 f"{thresholds[name]}, fewer than n_safe_per_constraint={k}; lower it"
             )
         drawn = draw(eligible[name], k, seed=seed + 10 + i)
-        roles[f"{CONSTRAINT_ROLE_PREFIX}{name}"] = drawn if not typed else torch.sort(torch.cat([safe, drawn])).values
+        roles[f"{CONSTRAINT_ROLE_PREFIX}{name}"] = (
+            drawn if not typed else torch.sort(torch.cat([safe, drawn])).values
+        )
     return roles
 
 
@@ -173,10 +175,14 @@ def _typed_constraint_pools(episodes, names, typed, eligible, thresholds, safe, 
             f"{names}"
         )
     if pools is None or safe is None:
-        raise DatasetError(f"{source}: dataset.constraint_pools needs a collected file's typed pools (scheme=controlled)")
+        raise DatasetError(
+            f"{source}: dataset.constraint_pools needs a collected file's typed pools (scheme=controlled)"
+        )
     missing = sorted({p for p in typed.values() if p not in pools})
     if missing:
-        raise DatasetError(f"{source}: dataset.constraint_pools names the pools {missing}; the file has {sorted(pools)}")
+        raise DatasetError(
+            f"{source}: dataset.constraint_pools names the pools {missing}; the file has {sorted(pools)}"
+        )
     costs = episode_constraint_costs(episodes)
     for name in names:
         over = safe[costs[name][safe] > thresholds[name]]

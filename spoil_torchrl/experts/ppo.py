@@ -244,7 +244,10 @@ def load_initial_actor(learner: PPOLearner, config: PPOConfig, env_id: str | Non
         actor, meta = load_policy(path, env_id=env_id)
     except PolicyFileError as err:
         raise ValueError(f"ppo.init_actor = {source!r}: {err}") from None
-    if tuple(meta["hidden_cells"]) != config.hidden_cells or meta["observation_norm"] != config.normalize_observations:
+    if (
+        tuple(meta["hidden_cells"]) != config.hidden_cells
+        or meta["observation_norm"] != config.normalize_observations
+    ):
         raise ValueError(
             f"ppo.init_actor = {source!r} has hidden cells {list(meta['hidden_cells'])} and observation_norm "
             f"{meta['observation_norm']}; this run has ppo.hidden_cells={list(config.hidden_cells)}, "

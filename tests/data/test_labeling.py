@@ -162,7 +162,9 @@ def test_controlled_pools_beyond_the_four_join_d_u_only_and_leave_a_four_pool_mi
     pools = {name: torch.arange(10) + 10 * i for i, name in enumerate(POOLS)}
     kwargs = dict(n_safe=4, performance=0.5, n_performant=4, safeness=0.5, seed=3)
     four = controlled_mix(pools, **kwargs, n_unlabeled=8)
-    six = controlled_mix(pools | {"x": torch.arange(40, 45), "y": torch.arange(45, 50)}, **kwargs, n_unlabeled=12)
+    six = controlled_mix(
+        pools | {"x": torch.arange(40, 45), "y": torch.arange(45, 50)}, **kwargs, n_unlabeled=12
+    )
     assert torch.equal(four["safe"], six["safe"]) and torch.equal(four["performant"], six["performant"])
     assert int((six["unlabeled"] >= 40).sum()) == 4  # two of each extra pool, as of the four
     every = controlled_mix(pools | {"x": torch.arange(40, 45)}, **kwargs)["unlabeled"]
