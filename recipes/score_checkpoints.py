@@ -65,6 +65,10 @@ def main() -> None:
     try:
         task = get_env_task(args.env_id)
         files = checkpoints(args.paths, args.every)
+        if not files:
+            raise FileNotFoundError(
+                f"no checkpoint left with --every {args.every}: the folders hold fewer files"
+            )
         policies = [(path, *load_policy(path, env_id=args.env_id)) for path in files]
         split = cost_components(args.env_id) if args.components else None
     except (KeyError, ValueError, FileNotFoundError, PolicyFileError) as error:
@@ -75,7 +79,7 @@ def main() -> None:
     )
     header = ["checkpoint", "frames", "return", "feasible return", "cost", "episodes over the limit"]
     start = time.perf_counter()
-    for path, actor, meta in policies:
+    for index, (path, actor, meta) in enumerate(policies):
         arrays = rollout(
             args.env_id,
             actor,
@@ -95,7 +99,7 @@ def main() -> None:
         for name in parts.keys():
             within = float((parts[name] <= task.cost_limit).double().mean())
             cells.append(f"{float(parts[name].mean()):.2f} ({100 * within:.0f} % within)")
-        if path is policies[0][0]:  # the constraints' columns are named by the first rollout
+        if index == 0:  # the constraints' columns are named by the first rollout
             columns = [*header, *parts.keys()]
             print("| " + " | ".join(columns) + " |\n" + "|---" * len(columns) + "|")
         frames = meta["info"].get("frames", "")

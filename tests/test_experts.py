@@ -494,8 +494,10 @@ def test_init_actor_starts_the_training_from_a_policy_and_refuses_another_shape(
     other = torch.load(tmp_path / "c" / "ckpt_000000500.pt", weights_only=True)["actor"]
     assert not all(torch.equal(other[k], given[k]) for k in given)
     wide = PPOConfig(total_frames=500, init_actor=str(source), **(tiny | {"hidden_cells": (16,)}))
-    with pytest.raises(ValueError, match=r"has hidden cells \[8\]"):
+    with pytest.raises(ValueError, match=r"is a tanh_normal policy with hidden cells \[8\]"):
         train_ppo(make, 28, 2, wide, tmp_path / "d", progress=False)
+    with pytest.raises(ValueError, match="ppo.init_actor with ppo.normalize_observations=true"):
+        PPOConfig(total_frames=500, init_actor=str(source), normalize_observations=True, **tiny)
     missing = PPOConfig(total_frames=500, init_actor="zoo:no-such-policy", **tiny)
     with pytest.raises(ValueError, match="ppo.init_actor = 'zoo:no-such-policy'"):
         train_ppo(make, 28, 2, missing, tmp_path / "e", progress=False, env_id="SafetyPointCircle1-v0")

@@ -181,6 +181,32 @@ def test_spoildice_and_fbc_with_two_constraints_end_to_end_and_other_methods_ref
     )
 
 
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (
+            "+eval.constraints=x_wall",
+            "eval.constraints = 'x_wall': expected a list of distinct constraint names",
+        ),
+        (
+            "+eval.constraints=[x_wall]",
+            "SafetyPointCircle1-v0 reports the per-constraint costs of no constraint",
+        ),
+    ],
+)
+def test_constraints_to_evaluate_are_checked_before_training(tmp_path, tiny_pc1_dataset, override, message):
+    cmd = [
+        "recipes/spoildice_dsrl.py",
+        "preset=smoke",
+        f"dataset.source=file:{tiny_pc1_dataset}",
+        "dataset.n_safe=2",
+    ]
+    cmd += ["dataset.n_performant=2", override]
+    proc = run_command([*cmd, f"hydra.run.dir={tmp_path}"], cwd=ROOT)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and not list(tmp_path.rglob("*.ckpt"))
+
+
 def test_dsrl_recipe_rejects_bad_settings_before_training(tmp_path, tiny_pc1_dataset):
     cmd = [
         "recipes/spoildice_dsrl.py",
@@ -306,6 +332,25 @@ def test_score_checkpoints_scores_zoo_policies(tmp_path):
     unsafe_cost = float(rows["unsafe-high.pt"].split("|")[5].split("±")[0])
     safe_cost = float(rows["safe-high.pt"].split("|")[5].split("±")[0])
     assert safe_cost < 25.0 < unsafe_cost
+
+
+def test_score_checkpoints_reports_each_constraints_cost_with_components(tmp_path):
+    zoo = ROOT / "spoil_torchrl" / "zoo" / "SafetyPointCircle2-v0"
+    cmd = ["recipes/score_checkpoints.py", str(zoo / "unsafe-high.pt"), str(zoo / "safe-high.pt")]
+    proc = run_command(
+        [*cmd, "--env-id", "SafetyPointCircle2-v0", "--episodes", "2", "--components"], cwd=ROOT
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("| ")]
+    assert lines[0].endswith("| x_wall | y_wall |") and len(lines) == 3  # one header, two rows
+    unsafe = lines[1].split("|")
+    assert (
+        float(unsafe[7].split("(")[0]) > 25.0 and float(unsafe[8].split("(")[0]) > 25.0
+    )  # both walls crossed
+    assert "(0 % within)" in unsafe[7]
+    pc1 = str(ROOT / "spoil_torchrl" / "zoo" / "SafetyPointCircle1-v0" / "safe-high.pt")
+    proc = run_command([cmd[0], pc1, "--components"], cwd=ROOT)  # PointCircle1 computes no constraint's cost
+    assert proc.returncode == 2 and "SafetyPointCircle1-v0 has no per-constraint costs" in proc.stderr
 
 
 def test_score_checkpoints_rejects_a_missing_path(tmp_path):

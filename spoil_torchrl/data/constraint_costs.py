@@ -118,8 +118,8 @@ def constraint_roles(
 
     ``cfg["constraint_pools"]`` (``{name: pool}``, with a collected file's typed ``pools``) models annotators who
     each certify one constraint: D_S^k is then D_S (``safe``, the demonstrations certified on every constraint,
-    which must be within every threshold) together with ``n_safe_per_constraint`` episodes of the typed pool
-    ``pool`` within k's threshold.
+    which must be within every threshold) together with ``n_safe_per_constraint`` other episodes of the typed
+    pool ``pool`` within k's threshold.
 
     Examples:
         >>> td = TensorDict({"episode": torch.arange(4), "next": {CONSTRAINTS_KEY: {
@@ -191,4 +191,5 @@ def _typed_constraint_pools(episodes, names, typed, eligible, thresholds, safe, 
                 f"{source}: D_S's episodes {over.tolist()} exceed constraint {name!r}'s threshold "
                 f"{thresholds[name]}, so they cannot join its safe set"
             )
-    return {name: eligible[name][torch.isin(eligible[name], pools[typed[name]])] for name in names}
+    inside = {name: torch.isin(eligible[name], pools[typed[name]]) for name in names}
+    return {name: eligible[name][inside[name] & ~torch.isin(eligible[name], safe)] for name in names}

@@ -281,6 +281,8 @@ def _load(dataset_id: str, download: bool):
 def _per_step(values, length: int, name: str, source: str) -> np.ndarray:
     """An ``infos`` entry as one row per step: ``T + 1`` rows (DataCollector layout) lose row 0."""
     values = np.asarray(values)
+    if values.ndim == 0:
+        raise DatasetError(f"{source}: infos['{name}'] is one value, not one per step")
     if values.shape[0] == length + 1:
         return values[1:]
     if values.shape[0] == length:

@@ -155,6 +155,11 @@ def select_roles(
     if unknown:
         raise ValueError(f"unknown extra roles {unknown}; available: {EXTRA_ROLES}")
     roles = _base_roles(episodes, cfg, cost_threshold=cost_threshold, metadata=metadata, seed=seed)
+    if cfg.get("constraint_pools") and cfg.get("constraints") and float(cfg.get("corruption") or 0.0) != 0.0:
+        raise DatasetError(
+            "dataset.constraint_pools with dataset.corruption: each constraint's safe set holds D_S, which the "
+            "corruption would change after the sets are drawn; use one of them"
+        )
     typed = segment_pools(dict(metadata)) if cfg.get("constraint_pools") and scheme == "controlled" else None
     roles |= constraint_roles(
         episodes, cfg, cost_threshold=cost_threshold, seed=seed, safe=roles["safe"], pools=typed

@@ -37,6 +37,12 @@ COST_COMPONENTS: dict[str, Callable[[object], dict[str, float]]] = {
 }
 
 
+#: env id -> the names of the constraints :data:`COST_COMPONENTS` gives, in order.
+COMPONENT_NAMES: dict[str, tuple[str, ...]] = {
+    "SafetyPointCircle2-v0": ("x_wall", "y_wall"),
+}
+
+
 def cost_components(env_id: str) -> Callable[[object], dict[str, float]]:
     """The per-constraint costs of ``env_id`` (:data:`COST_COMPONENTS`); a task without them raises, naming those
     that have them.

@@ -72,7 +72,7 @@ class PPOConfig:
     that constraint only.
     ``init_actor`` starts the actor from a policy instead of at random (fine-tuning; the critics start afresh):
     a policy or PPO checkpoint file, or ``zoo:<name>`` for a committed policy of the task, with the same
-    ``hidden_cells`` and observation standardisation. E.g. a demonstrator that keeps one constraint only, tuned
+    ``hidden_cells``, without observation standardisation. E.g. a demonstrator that keeps one constraint only, tuned
     from the unconstrained expert with a penalty on that constraint's cost (``docs/several_constraints.md``).
     ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
     (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
@@ -169,6 +169,11 @@ class PPOConfig:
                 f"ppo.cost_component = {self.cost_component!r} needs ppo.num_envs > 1 (the lockstep collector "
                 "reads each constraint's cost from the simulator)"
             )
+        if self.init_actor is not None and self.normalize_observations:
+            raise ValueError(
+                "ppo.init_actor with ppo.normalize_observations=true: the running statistics would start afresh "
+                "under a policy tuned to others; fine-tune without observation standardisation"
+            )
         if self.frames_per_batch % self.num_envs:
             raise ValueError(
                 f"ppo.frames_per_batch = {self.frames_per_batch} does not split over ppo.num_envs = {self.num_envs}"
@@ -228,9 +233,12 @@ class EpisodeTracker:
         return finished
 
 
-def load_initial_actor(learner: PPOLearner, config: PPOConfig, env_id: str | None) -> None:
+def load_initial_actor(
+    learner: PPOLearner, config: PPOConfig, env_id: str | None, observation_dim: int, action_dim: int
+) -> None:
     """Copy the weights of the policy ``config.init_actor`` (a file, or ``zoo:<name>`` of ``env_id``) into
-    ``learner``'s actor; a policy of another shape, task or observation standardisation is refused."""
+    ``learner``'s actor; a policy of another distribution, shape or task, or one that standardises its
+    observations (its statistics would not carry over to the training's running ones), is refused."""
     from spoil_torchrl.zoo.policy_files import PolicyFileError, load_policy, zoo_policy
 
     source = str(config.init_actor)
@@ -244,14 +252,14 @@ def load_initial_actor(learner: PPOLearner, config: PPOConfig, env_id: str | Non
         actor, meta = load_policy(path, env_id=env_id)
     except PolicyFileError as err:
         raise ValueError(f"ppo.init_actor = {source!r}: {err}") from None
-    if (
-        tuple(meta["hidden_cells"]) != config.hidden_cells
-        or meta["observation_norm"] != config.normalize_observations
-    ):
+    have = (tuple(meta["hidden_cells"]), meta["distribution"], meta["observation_dim"], meta["action_dim"])
+    if have != (config.hidden_cells, "tanh_normal", observation_dim, action_dim) or meta["observation_norm"]:
         raise ValueError(
-            f"ppo.init_actor = {source!r} has hidden cells {list(meta['hidden_cells'])} and observation_norm "
-            f"{meta['observation_norm']}; this run has ppo.hidden_cells={list(config.hidden_cells)}, "
-            f"ppo.normalize_observations={config.normalize_observations}"
+            f"ppo.init_actor = {source!r} is a {meta['distribution']} policy with hidden cells "
+            f"{list(meta['hidden_cells'])} for {meta['observation_dim']} -> {meta['action_dim']} dimensions"
+            f"{', standardising its observations' if meta['observation_norm'] else ''}; PPO starts from a "
+            f"tanh_normal policy with ppo.hidden_cells={list(config.hidden_cells)} for {observation_dim} -> "
+            f"{action_dim} dimensions, without observation standardisation of its own"
         )
     learner.actor.load_state_dict(actor.state_dict())
 
@@ -343,7 +351,7 @@ def train_ppo(
         learner.load_training_state(state["learner"])
         torch.set_rng_state(state["rng"])
     elif config.init_actor is not None:
-        load_initial_actor(learner, config, env_id)
+        load_initial_actor(learner, config, env_id, observation_dim, action_dim)
     log: list[dict] = [] if state is None else list(state["log"])
     first = 0 if state is None else int(state["batches"])
     results = {"status": "training", "config": asdict(config), "stack": current_stack(), "frames": 0}

@@ -37,7 +37,8 @@ from spoil_torchrl.data import (
     standardize_observations,
 )
 from spoil_torchrl.data.prepare import prepare_dataset
-from spoil_torchrl.envs.cost_components import COST_COMPONENTS
+from spoil_torchrl.envs.cost_components import COMPONENT_NAMES, COST_COMPONENTS
+from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.eval import Evaluator
 from spoil_torchrl.eval.dice_diagnostics import subsample
 from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint
@@ -196,11 +197,15 @@ def evaluated_constraints(cfg: DictConfig, env_id: str, cost_threshold: float) -
     for the evaluator, when the task computes per-constraint costs (``None`` otherwise: the task's cost only).
     ``+eval.constraints=[...]`` names them for a run that trains on the task's cost alone (e.g. the merged
     label beside a run with one safe set per constraint)."""
-    names = list(
-        OmegaConf.select(cfg, "dataset.constraints", default=None)
-        or OmegaConf.select(cfg, "eval.constraints", default=None)
-        or []
-    )
+    asked = list(OmegaConf.select(cfg, "eval.constraints", default=None) or [])
+    names = list(OmegaConf.select(cfg, "dataset.constraints", default=None) or asked)
+    have = COMPONENT_NAMES.get(env_id, ())
+    unknown = [name for name in asked if name not in have]
+    if unknown:  # asked for by name: a task that cannot report them is an error, not a silent omission
+        raise SettingsError(
+            f"eval.constraints = {asked}: {env_id} reports the per-constraint costs of "
+            f"{list(have) or 'no constraint'}; {unknown} are not among them"
+        )
     if not names or env_id not in COST_COMPONENTS:
         return None
     given = dict(OmegaConf.select(cfg, "dataset.constraint_thresholds", default=None) or {})

@@ -211,7 +211,15 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         rule = DATASET_RULES.get(key)
         if rule is not None and not rule[0](value):
             raise SettingsError(f"dataset.{key} = {value!r}: expected {rule[1]}")
+    _, evaluated = _dotted(cfg, "eval.constraints")
+    if evaluated is not None and not DATASET_RULES["constraints"][0](evaluated):
+        raise SettingsError(f"eval.constraints = {evaluated!r}: expected a list of distinct constraint names")
     _, constraints = _dotted(cfg, "dataset.constraints")
+    if constraints and evaluated and sorted(constraints) != sorted(evaluated):
+        raise SettingsError(
+            f"eval.constraints = {list(evaluated)!r} differs from dataset.constraints = {list(constraints)!r}: a run "
+            "is evaluated on the constraints it trains with; set one of them"
+        )
     _, algo = _dotted(cfg, "algo.name")
     if constraints and algo not in CONSTRAINED_ALGORITHMS:
         raise SettingsError(

@@ -7,7 +7,8 @@ of kind A and one of kind B. Their centres are drawn per seed among the :func:`t
 the shortest route that avoids that kind alone crosses the other kind's zone and is shorter than every route
 that avoids both (7 x 7, the default, is the smallest grid that has such a layout). Cost k is
 :func:`~spoil_torchrl.tabular.gridworld.zone_cost` of kind k's zone (``"crossing"``: the chosen move into a
-kind-k cell from outside it); the CMDP's cost is their maximum.
+kind-k cell from outside it); the CMDP's cost is their maximum. Zones may touch: on the 7 x 7 grid the two
+layouts' zones share their corner cell (3, 3), whose entry costs on both kinds.
 
 The demonstrations (:func:`two_zone_problem`) come from four experts, the LP optima of
 :mod:`~spoil_torchrl.tabular.optimal` with no cost, cost A only, cost B only and both (cost limit 0, so the

@@ -141,6 +141,10 @@ def test_typed_pools_give_each_constraint_the_merged_safe_set_and_its_own_annota
     merged = torch.tensor([2])  # safe on both walls: in every constraint's safe set
     roles = constraint_roles(episodes, cfg, cost_threshold=0.0, seed=0, safe=merged, pools=pools)
     assert roles["safe_x_wall"].tolist() == [1, 2] and roles["safe_y_wall"].tolist() == [0, 2]
+    overlapping = pools | {"x-only": torch.tensor([1, 2])}  # D_S's episode 2 is in x's pool too: drawn once
+    for seed in range(4):
+        again = constraint_roles(episodes, cfg, cost_threshold=0.0, seed=seed, safe=merged, pools=overlapping)
+        assert again["safe_x_wall"].tolist() == [1, 2]
     bad = [
         ({"constraint_pools": {"x_wall": "x-only"}}, {}, r"one typed pool for each of dataset.constraints"),
         ({"constraint_pools": {"x_wall": "x-only", "y_wall": "z"}}, {}, r"names the pools \['z'\]"),
