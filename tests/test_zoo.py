@@ -20,7 +20,8 @@ import torch
 )
 def test_zoo_has_the_four_policy_types(env_id):
     """Each policy says how it was trained: a safe one by PPO-Lagrangian or by PPO on a cost-penalised reward
-    (docs/experts.md says which, per task), an unsafe one by PPO."""
+    (docs/experts.md says which, per task), one safe on a single constraint by PPO-Lagrangian against that
+    constraint's cost, an unsafe one by PPO."""
     from spoil_torchrl.zoo import load_policy, zoo_names, zoo_policy
 
     names = zoo_names(env_id)
@@ -30,7 +31,9 @@ def test_zoo_has_the_four_policy_types(env_id):
         assert raw["env_id"] == env_id and raw["hidden_cells"] == [64, 64]
         _, meta = load_policy(zoo_policy(env_id, name), env_id=env_id)
         trainer = meta["info"].get("algorithm", meta["info"].get("trainer"))
-        if name.startswith(("safe", "ppolag")):
+        if name.endswith("-wall-safe"):  # safe on one constraint: trained against that constraint's cost only
+            assert trainer.startswith("PPO-Lagrangian against the") and meta["info"]["training"]["cost_component"]
+        elif name.startswith(("safe", "ppolag")):
             assert trainer == "PPO-Lagrangian" or trainer.startswith("PPO with cost penalty"), name
         else:
             assert trainer == "PPO" or trainer.startswith("PPO, "), name
