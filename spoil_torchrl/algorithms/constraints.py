@@ -16,7 +16,17 @@ from spoil_torchrl.objectives.spoildice import check_supports_intersect
 
 
 def constraint_roles_of(buffers) -> list[str]:
-    """The roles of the per-constraint safe sets in ``buffers`` (``safe_<name>``, in the dataset's order)."""
+    """The roles of the per-constraint safe sets in ``buffers`` (``safe_<name>``, in the dataset's order).
+
+    Examples:
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> from tensordict import TensorDict
+        >>> episodes = TensorDict({"observation": torch.zeros(3, 1), "episode": torch.arange(3),
+        ...                        "is_init": torch.ones(3, 1, dtype=torch.bool)}, [3])
+        >>> roles = {"safe": [0], "safe_x_wall": [1], "safe_y_wall": [2], "unlabeled": [0, 1, 2]}
+        >>> constraint_roles_of(DualDemoBuffers(episodes, roles, batch_size=1))
+        ['safe_x_wall', 'safe_y_wall']
+    """
     return [role for role in buffers.roles if role.startswith(CONSTRAINT_ROLE_PREFIX)]
 
 
@@ -37,7 +47,26 @@ def fit_constraint_supports(
 
     Returns the discriminators (role -> loss), the indicator columns, and per-constraint diagnostics
     (``support_share_<role>_<name>``, ``support_threshold_<name>``; ``support_share_<role>`` of the
-    intersection)."""
+    intersection).
+
+    Examples:
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> from tensordict import TensorDict
+        >>> _ = torch.manual_seed(0)
+        >>> n = 40  # 4 episodes of 10 steps; safe set a holds episode 0, safe set b episode 1
+        >>> episodes = TensorDict({"observation": torch.randn(n, 3), "action": torch.randn(n, 2),
+        ...                        "episode": torch.arange(n) // 10,
+        ...                        "is_init": (torch.arange(n) % 10 == 0).unsqueeze(-1)}, [n])
+        >>> roles = {"safe_a": [0], "safe_b": [1], "performant": [2], "unlabeled": [0, 1, 2, 3]}
+        >>> context = BuildContext(DualDemoBuffers(episodes, roles, batch_size=8), 3, 2, progress=False)
+        >>> cfg = {"kappa": 0.1, "discriminator": {"hidden_cells": [8], "gradient_penalty": {"safe": 0.0},
+        ...                                        "lr": 1e-3, "steps": 2}}
+        >>> _, columns, diagnostics = fit_constraint_supports(cfg, context, intersected=("performant",))
+        >>> columns, context.buffers["performant"].storage[:]["safe_support"].shape
+        (['safe_support_a', 'safe_support_b'], torch.Size([10, 1]))
+        >>> diagnostics["support_share_performant"] <= diagnostics["support_share_performant_a"]
+        True
+    """
     buffers = context.buffers
     roles = constraint_roles_of(buffers)
     penalties = dict(cfg["discriminator"]["gradient_penalty"])
