@@ -32,7 +32,10 @@ def test_zoo_has_the_four_policy_types(env_id):
         _, meta = load_policy(zoo_policy(env_id, name), env_id=env_id)
         trainer = meta["info"].get("algorithm", meta["info"].get("trainer"))
         if name.endswith("-wall-safe"):  # safe on one constraint: trained against that constraint's cost only
-            assert trainer.startswith("PPO-Lagrangian against the") and meta["info"]["training"]["cost_component"]
+            assert (
+                trainer.startswith("PPO-Lagrangian against the")
+                and meta["info"]["training"]["cost_component"]
+            )
         elif name.startswith(("safe", "ppolag")):
             assert trainer == "PPO-Lagrangian" or trainer.startswith("PPO with cost penalty"), name
         else:

@@ -85,17 +85,16 @@ def fit_constraint_supports(
             diagnostics[f"support_share_{target}_{name}"] = share
         columns.append(key)
         diagnostics[f"support_threshold_{name}"] = float(support.threshold)
+
+    def indicators(td):  # the K indicators side by side, [n, K]
+        return torch.cat([td[c] for c in columns], -1)
+
     for target in stacked:
-        buffers.annotate(target, "safe_support", lambda td: torch.cat([td[c] for c in columns], -1))
+        buffers.annotate(target, "safe_support", indicators)
     for target in intersected:
-        buffers.annotate(
-            target, "safe_support", lambda td: torch.cat([td[c] for c in columns], -1).prod(-1, keepdim=True)
-        )
+        buffers.annotate(target, "safe_support", lambda td: indicators(td).prod(-1, keepdim=True))
     first = (*stacked, *intersected)[0]
-    data = buffers[first].storage[:]
-    check_supports_intersect(
-        torch.cat([data[c] for c in columns], -1), f"the annotated {first}'s safe supports"
-    )
+    check_supports_intersect(indicators(buffers[first].storage[:]), f"the annotated {first}'s safe supports")
     for target in (*stacked, *intersected):
         inside = buffers[target].storage[:]["safe_support"].prod(-1).float().mean()
         diagnostics[f"support_share_{target}"] = float(inside)

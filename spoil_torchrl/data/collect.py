@@ -65,12 +65,11 @@ class Segment:
 
 def resolve_policy(spec: str, env_id: str) -> ProbabilisticActor | None:
     """The actor a :class:`Segment` ``policy`` names (``None`` for the random policy)."""
-    from spoil_torchrl.zoo.policy_files import load_policy, zoo_policy
+    from spoil_torchrl.zoo.policy_files import load_policy, policy_path
 
     if spec == RANDOM_POLICY:
         return None
-    path = zoo_policy(env_id, spec.removeprefix("zoo:")) if spec.startswith("zoo:") else Path(spec)
-    return load_policy(path, env_id=env_id)[0]
+    return load_policy(policy_path(spec, env_id), env_id=env_id)[0]
 
 
 def reference_policies(env_id: str) -> dict[str, str | None]:

@@ -17,6 +17,10 @@ from collections.abc import Callable
 COMPONENT_PREFIX = "cost_"
 
 
+#: The constraints of a ``Sigwalls`` task, in :func:`boundary_walls`' order.
+WALLS = ("x_wall", "y_wall")
+
+
 def boundary_walls(env) -> dict[str, float]:
     """The two walls of a ``Sigwalls`` task as two constraints, after the step just taken: ``x_wall`` is 1 outside
     ``|x| <= locate_factor``, ``y_wall`` outside ``|y| <= locate_factor`` (0 with two walls only). The task's own
@@ -24,10 +28,8 @@ def boundary_walls(env) -> dict[str, float]:
     task = env.unwrapped.task
     walls, position = task.sigwalls, task.agent.pos
     limit = walls.locate_factor
-    return {
-        "x_wall": float(abs(position[0]) > limit),
-        "y_wall": float(walls.num == 4 and abs(position[1]) > limit),
-    }
+    outside = (abs(position[0]) > limit, walls.num == 4 and abs(position[1]) > limit)
+    return {name: float(out) for name, out in zip(WALLS, outside, strict=True)}
 
 
 #: env id -> the function giving the per-constraint costs of the step just taken (module-level: rollout jobs
@@ -39,7 +41,7 @@ COST_COMPONENTS: dict[str, Callable[[object], dict[str, float]]] = {
 
 #: env id -> the names of the constraints :data:`COST_COMPONENTS` gives, in order.
 COMPONENT_NAMES: dict[str, tuple[str, ...]] = {
-    "SafetyPointCircle2-v0": ("x_wall", "y_wall"),
+    "SafetyPointCircle2-v0": WALLS,
 }
 
 

@@ -239,17 +239,13 @@ def load_initial_actor(
     """Copy the weights of the policy ``config.init_actor`` (a file, or ``zoo:<name>`` of ``env_id``) into
     ``learner``'s actor; a policy of another distribution, shape or task, or one that standardises its
     observations (its statistics would not carry over to the training's running ones), is refused."""
-    from spoil_torchrl.zoo.policy_files import PolicyFileError, load_policy, zoo_policy
+    from spoil_torchrl.zoo.policy_files import PolicyFileError, load_policy, policy_path
 
     source = str(config.init_actor)
+    if source.startswith("zoo:") and env_id is None:
+        raise ValueError(f"ppo.init_actor = {source!r} needs train_ppo(..., env_id=<the task>)")
     try:
-        if source.startswith("zoo:"):
-            if env_id is None:
-                raise ValueError(f"ppo.init_actor = {source!r} needs train_ppo(..., env_id=<the task>)")
-            path = zoo_policy(env_id, source.removeprefix("zoo:"))
-        else:
-            path = Path(source)
-        actor, meta = load_policy(path, env_id=env_id)
+        actor, meta = load_policy(policy_path(source, env_id), env_id=env_id)
     except PolicyFileError as err:
         raise ValueError(f"ppo.init_actor = {source!r}: {err}") from None
     have = (tuple(meta["hidden_cells"]), meta["distribution"], meta["observation_dim"], meta["action_dim"])

@@ -218,3 +218,14 @@ def zoo_policy(env_id: str, name: str) -> Path:
             + (f"available: {', '.join(available)}" if available else "this task has none")
         )
     return path
+
+
+def policy_path(spec: str, env_id: str) -> Path:
+    """The file a policy spec names: ``zoo:<name>`` (the committed policy ``name`` of ``env_id``, see
+    :func:`zoo_policy`) or a path.
+
+    Examples:
+        >>> policy_path("zoo:safe-high", "SafetyPointCircle1-v0").name, policy_path("a/b.pt", "any").as_posix()
+        ('safe-high.pt', 'a/b.pt')
+    """
+    return zoo_policy(env_id, spec.removeprefix("zoo:")) if spec.startswith("zoo:") else Path(spec)
