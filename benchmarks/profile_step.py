@@ -14,6 +14,9 @@ with ``torch.profiler`` and Inductor's per-kernel profiling on. It prints millis
 * the rest of the step's wall time: Python, the dispatcher, Dynamo's guards, the tensordict reads and the
   penalty points' random draws outside the graph.
 
+Then, without the trace, the step's parts in milliseconds: the parameters, the inputs (reads and the penalty's
+draws), the compiled graph's call, the gradients handed to the three Adam steps, the outputs.
+
 The trace slows the step down a little; the shares are what it is for. Timings on shared 2-core machines vary by
 30-50 % between runs: compare forms within one run.
 """
@@ -76,6 +79,49 @@ def profile(form: str, steps: int, precision: str, batches) -> tuple[dict, list,
     return dict(categories), table, wall
 
 
+def outside_graph(form: str, steps: int, precision: str, batches) -> dict[str, float]:
+    """Milliseconds per step, without the trace, of each part of :meth:`CompiledStepper.step`: the parts around
+    the compiled graph (parameters, inputs and the penalty's draws, gradients handed over, the three Adam steps,
+    the outputs' tensordict) and the graph's own call (guards, Inductor's wrapper, the kernels)."""
+    from spoil_torchrl.trainers.compiled import (
+        detached,
+        scalar_outputs,
+        set_gradients,
+        step_inputs,
+        step_parameters,
+    )
+
+    stepper = CompiledLibraryStep(28, 2, (256, 256), penalty_form=form).stepper
+    parts: dict[str, float] = collections.Counter()
+    clock = time.perf_counter
+    with matmul_precision(precision):
+        for i in range(20):  # compiles, warms up
+            stepper.step(None, batches[i % len(batches)])
+        for i in range(steps):
+            t0 = clock()
+            parameters = step_parameters(stepper.losses)
+            t1 = clock()
+            inputs = step_inputs(stepper.losses, stepper._earlier, batches[i % len(batches)])
+            t2 = clock()
+            grads, (_, outputs) = stepper._fn(detached(parameters), inputs)
+            t3 = clock()
+            set_gradients(parameters, grads)
+            for optimizer in stepper.optimizers:
+                optimizer.step()
+            t4 = clock()
+            scalar_outputs(outputs)
+            t5 = clock()
+            for name, seconds in (
+                ("parameters", t1 - t0),
+                ("inputs (reads, penalty draws)", t2 - t1),
+                ("compiled graph (guards, wrapper, kernels)", t3 - t2),
+                ("gradients handed over, Adam x 3", t4 - t3),
+                ("outputs (tensordict)", t5 - t4),
+            ):
+                parts[name] += 1e3 * seconds / steps
+    return dict(parts)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -98,6 +144,10 @@ def main() -> None:
         )
         for name, ms in categories.items():
             print(f"  {name:<46} {ms:7.2f} ms  {100 * ms / wall:5.1f} %")
+        parts = outside_graph(form, args.steps, args.precision, batches)
+        print(f"  without the trace: {sum(parts.values()):.1f} ms per step")
+        for name, ms in parts.items():
+            print(f"    {name:<44} {ms:7.2f} ms")
         print(f"  products by shape (top {args.top}):")
         for ms, calls, flops, (name, shapes) in table[: args.top]:
             rate_gflops = calls * flops / (ms / 1e3) / 1e9 if ms > 0 else 0.0

@@ -32,6 +32,7 @@ SETTING_CASES = [
         "train.penalty_form = 'fast': expected autograd | relu_chain",
     ),
     ({"threads": 0}, "threads = 0"),
+    ({"device": "gpu"}, "device = 'gpu': expected cpu or cuda"),
     ({"dataset": {"n_safe": 0}}, "dataset.n_safe = 0"),
     ({"dataset": {"safeness": 1.5}}, "dataset.safeness = 1.5"),
     ({"dataset": {"n_unlabeled": -5}}, "dataset.n_unlabeled = -5"),

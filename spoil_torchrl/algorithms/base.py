@@ -43,6 +43,9 @@ class BuildContext:
             and COptiDICE only).
         logger: the TorchRL logger pre-training logs into (``None``: no log rows, e.g. a resumed run).
         progress: whether pre-training shows a progress bar.
+        device: where the losses (networks, their parameters, and so the optimisers' states) live: the
+            buffers' device (:mod:`spoil_torchrl.devices`). Every builder puts each loss there with
+            :meth:`place` before it makes the loss's optimisers.
 
     Examples:
         >>> import torch
@@ -64,6 +67,11 @@ class BuildContext:
     constraint: EpisodeConstraint | None = None
     logger: Any = None
     progress: bool = True
+    device: torch.device = torch.device("cpu")
+
+    def place(self, loss: LossModule) -> LossModule:
+        """``loss`` (its networks, parameters and buffers) moved to :attr:`device`; returns it."""
+        return loss.to(self.device)
 
 
 @dataclass
@@ -224,7 +232,7 @@ def weighted_bc_stage(
     cfg: Mapping[str, Any], context: BuildContext, role: str, weight: str | None, diagnostics: dict
 ) -> PolicyTraining:
     """A main stage of weighted BC alone (Eq. 20 on ``role`` with ``weight``): BC, FBC, JFBC."""
-    policy_loss = WeightedBCLoss(actor(cfg, context), role=role, weight=weight)
+    policy_loss = context.place(WeightedBCLoss(actor(cfg, context), role=role, weight=weight))
     stepper = MultiLossStepper({"actor": policy_loss}, [adam(policy_loss.parameters(), cfg["actor_lr"])])
     return PolicyTraining(stepper, policy_loss, diagnostics)
 
@@ -239,7 +247,7 @@ def dice_stage(
 ) -> PolicyTraining:
     """A DICE main stage: ``dice`` writes ``dice_weight`` into ``role`` and pi is weighted BC on it (Eq. 20);
     the dual's optimisers step first, then the actor's."""
-    policy_loss = WeightedBCLoss(actor(cfg, context), role=role, weight="dice_weight")
+    policy_loss = context.place(WeightedBCLoss(actor(cfg, context), role=role, weight="dice_weight"))
     optimizers = [*dual_optimizers, adam(policy_loss.parameters(), cfg["actor_lr"])]
     stepper = MultiLossStepper({"dice": dice, "actor": policy_loss}, optimizers)
     return PolicyTraining(stepper, policy_loss, diagnostics, dice=dice, dice_role=role)
@@ -262,13 +270,15 @@ def train_discriminators(
     if missing:
         raise ValueError(f"discriminator.gradient_penalty has no coefficient for {missing}")
     losses = {
-        f"disc_{role}": PUDiscriminatorLoss(
-            make_discriminator(
-                context.observation_dim, context.action_dim, hidden_cells=tuple(cfg["hidden_cells"])
-            ),
-            positive=role,
-            unlabeled=against,
-            gradient_penalty=float(penalties[role]),
+        f"disc_{role}": context.place(
+            PUDiscriminatorLoss(
+                make_discriminator(
+                    context.observation_dim, context.action_dim, hidden_cells=tuple(cfg["hidden_cells"])
+                ),
+                positive=role,
+                unlabeled=against,
+                gradient_penalty=float(penalties[role]),
+            )
         )
         for role in positives
     }
@@ -291,7 +301,8 @@ def fit_support(
     loss: PUDiscriminatorLoss, buffers: DualDemoBuffers, role: str, kappa: float, out_key: str
 ) -> SupportEstimator:
     """Eq. (13) on ``role``'s discriminator: the kappa-quantile cut of its log-ratio over ``role``'s data."""
-    return SupportEstimator(loss.frozen_network(), kappa=kappa, out_key=out_key).fit(buffers[role].storage[:])
+    estimator = SupportEstimator(loss.frozen_network(), kappa=kappa, out_key=out_key).to(buffers.device)
+    return estimator.fit(buffers[role].storage[:])
 
 
 def frozen_networks(discriminators: Mapping[str, PUDiscriminatorLoss]) -> dict[str, torch.nn.Module]:

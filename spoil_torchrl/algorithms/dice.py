@@ -90,12 +90,14 @@ def build_spoildice(
     """SpoilDICE's main stage (Algorithm 1): (nu, lambda) by Eq. (19) and pi by weighted BC on D_U (Eq. 20),
     on D_U annotated by :func:`pretrain_spoildice` (with K constraints, one lambda_k each)."""
     constraints = len(constraint_roles_of(context.buffers))
-    dice = SpoilDICELoss(
-        _value_network(cfg, context),
-        gamma=float(cfg["gamma"]),
-        gradient_penalty=float(cfg["nu_gradient_penalty"]),
-        init_lagrange=float(cfg["init_lagrange"]),
-        **({"constraints": constraints} if constraints else {}),
+    dice = context.place(
+        SpoilDICELoss(
+            _value_network(cfg, context),
+            gamma=float(cfg["gamma"]),
+            gradient_penalty=float(cfg["nu_gradient_penalty"]),
+            init_lagrange=float(cfg["init_lagrange"]),
+            **({"constraints": constraints} if constraints else {}),
+        )
     )
     dual = [
         adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),
@@ -114,13 +116,15 @@ def _demodice_stage(
         f"{reward_key}_mean": float(reward.mean()),
         f"{reward_key}_std": float(reward.std()),
     }
-    dice = DemoDICELoss(
-        _value_network(cfg, context),
-        alpha=float(cfg["alpha"]),
-        gamma=float(cfg["gamma"]),
-        gradient_penalty=float(cfg["nu_gradient_penalty"]),
-        regularization=role,
-        reward=reward_key,
+    dice = context.place(
+        DemoDICELoss(
+            _value_network(cfg, context),
+            alpha=float(cfg["alpha"]),
+            gamma=float(cfg["gamma"]),
+            gradient_penalty=float(cfg["nu_gradient_penalty"]),
+            regularization=role,
+            reward=reward_key,
+        )
     )
     dual = [adam(dice.nu_network_params.values(True, True), cfg["nu_lr"])]
     return dice_stage(cfg, context, dice, dual, role, diagnostics)
@@ -220,13 +224,15 @@ def build_safedice(cfg: Mapping[str, Any], context: BuildContext, pretraining: P
     if bool(cfg.get("standardize_reward", False)):
         std = diagnostics["reward_std"]
         reward_mean, reward_std = diagnostics["reward_mean"], (std if std > 0 else 1.0)
-    dice = SafeDICELoss(
-        _value_network(cfg, context),
-        alpha=diagnostics["alpha"],
-        gamma=float(cfg["gamma"]),
-        gradient_penalty=float(cfg["nu_gradient_penalty"]),
-        reward_mean=reward_mean,
-        reward_std=reward_std,
+    dice = context.place(
+        SafeDICELoss(
+            _value_network(cfg, context),
+            alpha=diagnostics["alpha"],
+            gamma=float(cfg["gamma"]),
+            gradient_penalty=float(cfg["nu_gradient_penalty"]),
+            reward_mean=reward_mean,
+            reward_std=reward_std,
+        )
     )
     dual = [adam(dice.nu_network_params.values(True, True), cfg["nu_lr"])]
     return dice_stage(cfg, context, dice, dual, "unlabeled", diagnostics)
@@ -257,15 +263,17 @@ def build_coptidice(
         "cost_rate_unlabeled": float(unlabeled["next", "cost"].float().mean()),
         "reward_rate_unlabeled": float(unlabeled["next", "reward"].float().mean()),
     }
-    dice = COptiDICELoss(
-        _value_network(cfg, context),
-        _value_network(cfg, context, out_key="chi"),
-        cost_limit=float(limit),
-        alpha=float(cfg["alpha"]),
-        gamma=gamma,
-        cost_ub_epsilon=float(cfg["cost_ub_epsilon"]),
-        gradient_penalty=float(cfg["nu_gradient_penalty"]),
-        init_lagrange=float(cfg["init_lagrange"]),
+    dice = context.place(
+        COptiDICELoss(
+            _value_network(cfg, context),
+            _value_network(cfg, context, out_key="chi"),
+            cost_limit=float(limit),
+            alpha=float(cfg["alpha"]),
+            gamma=gamma,
+            cost_ub_epsilon=float(cfg["cost_ub_epsilon"]),
+            gradient_penalty=float(cfg["nu_gradient_penalty"]),
+            init_lagrange=float(cfg["init_lagrange"]),
+        )
     )
     dual = [
         adam(dice.nu_network_params.values(True, True), cfg["nu_lr"]),

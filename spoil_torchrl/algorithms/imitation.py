@@ -130,19 +130,21 @@ def build_dwbc_s(cfg: Mapping[str, Any], context: BuildContext, pretraining: Pre
     if missing:
         raise ValueError(f"DWBC-S reads the roles {roles}, but the buffers have no {missing}")
     disc = cfg["discriminator"]
-    loss = DWBCLoss(
-        actor(cfg, context),
-        make_discriminator(
-            context.observation_dim,
-            context.action_dim,
-            hidden_cells=tuple(disc["hidden_cells"]),
-            extra_inputs={"policy_log_prob": 1},
-        ),
-        alpha=float(cfg["alpha"]),
-        eta=float(cfg["eta"]),
-        reference_offsets=bool(cfg.get("reference_offsets", True)),
-        expert=cfg["expert"],
-        unlabeled=cfg["unlabeled"],
+    loss = context.place(
+        DWBCLoss(
+            actor(cfg, context),
+            make_discriminator(
+                context.observation_dim,
+                context.action_dim,
+                hidden_cells=tuple(disc["hidden_cells"]),
+                extra_inputs={"policy_log_prob": 1},
+            ),
+            alpha=float(cfg["alpha"]),
+            eta=float(cfg["eta"]),
+            reference_offsets=bool(cfg.get("reference_offsets", True)),
+            expert=cfg["expert"],
+            unlabeled=cfg["unlabeled"],
+        )
     )
     optimizers = [
         adam(loss.actor_network_params.values(True, True), cfg["actor_lr"]),

@@ -33,7 +33,7 @@ class DualDemoBuffers:
     holds every episode shares the dataset's own memory, memory-mapped or not). The ``"init"`` buffer holds the
     first observation of each episode of ``init_role`` (:math:`\\rho_0`, the initial-state term of the DICE
     duals). Sampling is uniform with replacement and reproducible: buffer ``i`` draws from
-    ``torch.Generator().manual_seed(seed + i)``.
+    ``torch.Generator(device).manual_seed(seed + i)``.
 
     Args:
         episodes: TED-layout transitions with ``episode`` and ``is_init`` (from
@@ -45,6 +45,9 @@ class DualDemoBuffers:
         init_role: role whose episodes give the initial states. Default ``"unlabeled"``.
         memmap_dir: memory-map the copied role subsets into this folder (the all-episodes role stays as loaded).
         seed: base seed of the buffers' generators.
+        device: where the roles' transitions live and their indices are drawn (``None`` or a CPU: where
+            ``episodes`` are, without a copy). On a GPU each role is copied there once, and a batch is drawn and
+            gathered there, with no transfer per sample.
 
     Examples:
         >>> import numpy as np
@@ -72,6 +75,7 @@ class DualDemoBuffers:
         init_role: str = "unlabeled",
         memmap_dir: str | os.PathLike | None = None,
         seed: int = 0,
+        device: torch.device | str | None = None,
     ) -> None:
         if "init" in roles:
             raise ValueError("'init' is reserved for the initial-state buffer")
@@ -91,7 +95,9 @@ class DualDemoBuffers:
                     data = data.memmap_(Path(memmap_dir) / role)
             if data.shape[0] == 0:
                 raise ValueError(f"role {role!r} has no transitions")
-            self._generators[role] = torch.Generator().manual_seed(seed + i)
+            if device is not None and torch.device(device).type != "cpu":
+                data = data.to(device)  # once; a batch is then drawn and gathered on the device
+            self._generators[role] = torch.Generator(device or "cpu").manual_seed(seed + i)
             self.buffers[role] = TensorDictReplayBuffer(
                 storage=TensorStorage(data),
                 sampler=RandomSampler(),
@@ -102,6 +108,11 @@ class DualDemoBuffers:
     @property
     def roles(self) -> list[str]:
         return list(self.buffers)
+
+    @property
+    def device(self) -> torch.device:
+        """Where the transitions live and the batches are drawn."""
+        return next(iter(self._generators.values())).device
 
     def __getitem__(self, role: str) -> TensorDictReplayBuffer:
         return self.buffers[role]

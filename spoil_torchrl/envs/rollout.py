@@ -95,10 +95,10 @@ def rollout(
     elif desc:
         bar.set_postfix_str(desc)
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    # The caller's random stream, float32 matmul precision and threads (e.g. a training's) leave the episodes
-    # untouched.
+    # The caller's random streams (the CPU's, and a GPU policy's), float32 matmul precision and threads (e.g. a
+    # training's) leave the episodes untouched.
     with (
-        torch.random.fork_rng(devices=[]),
+        torch.random.fork_rng(devices=[device] if device.type == "cuda" else []),
         matmul_precision("highest"),
         intra_op_threads(1),
         torch.no_grad(),

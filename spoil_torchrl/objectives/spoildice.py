@@ -163,14 +163,22 @@ def spoildice_diagnostics(
 def check_support_indicator(support: torch.Tensor, key: NestedKey) -> None:
     """Raise a clear ``ValueError`` unless ``support`` (read from ``key``) is a 0/1 indicator (Eq. 13).
 
+    The check is an assertion on the tensor's device (:func:`torch._assert_async`): on a CPU it raises at once,
+    on a GPU it fails the device's stream later, so a training step never waits to read the answer back.
+
     Examples:
         >>> check_support_indicator(torch.tensor([0.0, 1.0]), "safe_support")
     """
-    if not torch.compiler.is_compiling() and not bool(((support == 0) | (support == 1)).all()):
-        raise ValueError(
-            f"{key} must be a 0/1 indicator (Eq. 13); got other values. "
-            "Write it with SupportEstimator, or point set_keys(support=...) at the right entry."
-        )
+    if torch.compiler.is_compiling():
+        return
+    message = (
+        f"{key} must be a 0/1 indicator (Eq. 13); got other values. "
+        "Write it with SupportEstimator, or point set_keys(support=...) at the right entry."
+    )
+    try:
+        torch._assert_async(((support == 0) | (support == 1)).all(), message)
+    except RuntimeError:  # a CPU's answer, at once
+        raise ValueError(message) from None
 
 
 def check_supports_intersect(support: torch.Tensor, key: NestedKey) -> None:

@@ -37,6 +37,7 @@ from spoil_torchrl.data import (
     standardize_observations,
 )
 from spoil_torchrl.data.prepare import prepare_dataset
+from spoil_torchrl.devices import training_device
 from spoil_torchrl.envs.cost_components import COMPONENT_NAMES, COST_COMPONENTS
 from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.eval import Evaluator
@@ -242,8 +243,11 @@ def _load_buffers(cfg: DictConfig, env_id: str):
         else None
     )
     episodes = data.episodes if norm is None else standardize_observations(data.episodes, norm)
-    buffers = DualDemoBuffers(episodes, data.roles, batch_size=int(cfg.train.batch_size), seed=int(cfg.seed))
-    return data, norm, buffers
+    device = training_device(OmegaConf.select(cfg, "device", default=None))
+    buffers = DualDemoBuffers(
+        episodes, data.roles, batch_size=int(cfg.train.batch_size), seed=int(cfg.seed), device=device
+    )
+    return data, None if norm is None else norm.to(device), buffers
 
 
 def _new_results(
@@ -313,6 +317,7 @@ def _build_context(inputs: RunInputs) -> BuildContext:
         constraint=EpisodeConstraint(inputs.evaluator.cost_threshold, task.episode_length),
         logger=inputs.logger if inputs.checkpoint is None else None,
         progress=inputs.cfg.progress,
+        device=inputs.buffers.device,
     )
 
 
@@ -320,6 +325,8 @@ def _diagnostics_probe(inputs: RunInputs, training: PolicyTraining) -> DiceProbe
     """Diagnostics (never read by training): D_P's support estimate once, into ``results``, and for a DICE
     method a fixed subsample of its role on which (nu, lambda) are examined at every evaluation."""
     pools = segment_pools(inputs.metadata) if "segments" in inputs.metadata else None
+    if pools is not None:  # beside the transitions they select
+        pools = {name: ids.to(inputs.buffers.device) for name, ids in pools.items()}
     support = performant_support(inputs.buffers, pools)
     if support is not None:
         inputs.results["performant_support"] = support

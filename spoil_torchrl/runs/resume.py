@@ -20,6 +20,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from spoil_torchrl.devices import DEFAULT_DEVICE
 from spoil_torchrl.files import update_digest, write_atomic
 from spoil_torchrl.runs.checkpoint import CheckpointError
 from spoil_torchrl.runs.directory import RunDirError, run_status
@@ -37,6 +38,7 @@ IMPLIED_SETTINGS = {
     "dataset.constraint_thresholds": None,
     "dataset.constraint_pools": None,
     "eval.constraints": None,
+    "device": DEFAULT_DEVICE,
 }
 
 

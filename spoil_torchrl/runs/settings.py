@@ -15,6 +15,7 @@ from typing import Any
 
 from spoil_torchrl.data.parallel import available_cores
 from spoil_torchrl.data.prepare import SCHEMES
+from spoil_torchrl.devices import training_device
 from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.objectives.input_gradient import PENALTY_FORMS
 from spoil_torchrl.precision import MATMUL_PRECISIONS
@@ -192,6 +193,9 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         present, value = _dotted(cfg, key)
         if present and not check(value):
             raise SettingsError(f"{key} = {value!r}: expected {expected}")
+    present, device = _dotted(cfg, "device")
+    if present:
+        training_device(device)  # a name torch knows, of a device this machine has
     seeds = cfg.get("seeds")
     if seeds is not None and not (
         isinstance(seeds, (list, tuple))

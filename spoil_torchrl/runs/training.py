@@ -175,9 +175,11 @@ def train(runs: list[PretrainedRun], *, vectorised: bool | None = None) -> list[
     with contextlib.ExitStack() as stack:
         for run in runs:  # every evaluation episode into the seed's MCAP file, flushed per episode
             run.inputs.evaluator.writer = stack.enter_context(rollout_writer(run.inputs))
-        pool = stack.enter_context(
-            RolloutPool(workers=min(len(runs), available_cores()) - 1, warm_up=ROLLOUT_MODULES)
-        )
+        # the seeds' rollouts on the spare cores too (a CUDA policy stays in this process: forked workers
+        # cannot take it)
+        on_cpu = runs[0].inputs.buffers.device.type == "cpu"
+        workers = min(len(runs), available_cores()) - 1 if on_cpu else 0
+        pool = stack.enter_context(RolloutPool(workers=workers, warm_up=ROLLOUT_MODULES))
         _register_hooks(trainer, runs, steps, clocks, pool)
         trainer.train()
     if hasattr(steps.stepper, "sync"):

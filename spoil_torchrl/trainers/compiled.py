@@ -258,5 +258,5 @@ class CompiledStepper(MultiLossStepper):
         if not self.compiled:  # the step compiles: from now on Adam runs as one fused kernel too
             use_fused_adam(self.optimizers)
         self.compiled = True
-        self._apply_gradients(lambda: set_gradients(parameters, grads))
+        self._apply_gradients(lambda: set_gradients(parameters, grads), replaces=True)
         return scalar_outputs(outputs)

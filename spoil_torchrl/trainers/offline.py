@@ -233,11 +233,13 @@ class MultiLossStepper(OptimizationStepper):
         self._apply_gradients(total.backward)
         return scalar_outputs(outputs)
 
-    def _apply_gradients(self, set_gradients: Callable[[], None]) -> None:
+    def _apply_gradients(self, set_gradients: Callable[[], None], *, replaces: bool = False) -> None:
         """Clear every optimiser's gradients, fill them with ``set_gradients`` (a backward pass, or gradients
-        computed elsewhere), then step the optimisers and the schedules."""
-        for optimizer in self.optimizers:
-            optimizer.zero_grad(set_to_none=True)
+        computed elsewhere), then step the optimisers and the schedules. ``replaces``: ``set_gradients`` gives
+        every parameter it touches a new gradient (it assigns, it does not accumulate), so nothing is cleared."""
+        if not replaces:
+            for optimizer in self.optimizers:
+                optimizer.zero_grad(set_to_none=True)
         set_gradients()
         for optimizer in self.optimizers:
             optimizer.step()

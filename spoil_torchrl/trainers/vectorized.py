@@ -319,7 +319,7 @@ class VectorizedStepper(MultiLossStepper):
                 self._fn, self.compile = None, False  # eager from now on
         if self._fn is None:
             grads, (_, outputs) = self._update(*args)
-        self._apply_gradients(lambda: set_gradients(self.params, grads))
+        self._apply_gradients(lambda: set_gradients(self.params, grads), replaces=True)
         return TensorDict(
             {
                 f"{name}.{key}": value.detach().float()
