@@ -80,10 +80,13 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def rng_state(buffers=None) -> dict[str, Any]:
-    """Torch's global generator state and, when given, every buffer's sampling-generator state."""
+    """Torch's global generator state and, when given, every buffer's sampling-generator state (and, for buffers
+    on a GPU, that GPU's global generator: the penalty's draws of a ``device=cuda`` run)."""
     state: dict[str, Any] = {"torch": torch.get_rng_state()}
     if buffers is not None:
         state["buffers"] = buffers.rng_state()
+        if buffers.device.type == "cuda":
+            state["cuda"] = torch.cuda.get_rng_state(buffers.device)
     return state
 
 
@@ -92,3 +95,5 @@ def set_rng_state(state: Mapping[str, Any], buffers=None) -> None:
     torch.set_rng_state(state["torch"])
     if buffers is not None:
         buffers.set_rng_state(state["buffers"])
+        if "cuda" in state:
+            torch.cuda.set_rng_state(state["cuda"], buffers.device)
