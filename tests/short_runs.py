@@ -18,6 +18,25 @@ RECIPE = str(ROOT / "recipes" / "spoildice_dsrl.py")
 SHORT = ["preset=smoke", "train.steps=300", "train.batch_size=64", "train.eval_episodes=2", "progress=false"]
 
 
+def composed_settings(dataset, *overrides):
+    """The main recipe's settings, composed in-process with Hydra's compose API: the smoke preset on ``dataset``
+    (2 safe and 2 performant episodes), no progress bars, then ``overrides``."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        return compose(
+            "spoildice_dsrl",
+            overrides=[
+                "preset=smoke",
+                f"dataset.source=file:{dataset}",
+                "dataset.n_safe=2",
+                "dataset.n_performant=2",
+                "progress=false",
+                *overrides,
+            ],
+        )
+
+
 def recipe_args(dataset, run_dir, *overrides) -> list[str]:
     """The command line of a short run in ``run_dir`` on ``dataset`` (2 safe and 2 performant episodes)."""
     data = [f"dataset.source=file:{dataset}", "dataset.n_safe=2", "dataset.n_performant=2"]

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from tensordict import TensorDictBase
 from torch.overrides import TorchFunctionMode
 
@@ -21,8 +20,8 @@ from spoil_torchrl.runs.seed_run import rollout_job
 from spoil_torchrl.runs.settings import check_settings
 from spoil_torchrl.runs.training import one_seed
 from spoil_torchrl.trainers import offline_trainer
+from tests.short_runs import composed_settings
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 DEVICES = [
     "cpu",
     pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU")),
@@ -69,25 +68,6 @@ def _moves(name: str, args, kwargs) -> bool:
         elif isinstance(arg, torch.Tensor):
             target = arg.device
     return target is not None and torch.device(target) != tensor.device
-
-
-def _settings(dataset, device: str, algo: str, *overrides):
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(
-            "spoildice_dsrl",
-            overrides=[
-                "preset=smoke",
-                f"algo={algo}",
-                f"device={device}",
-                f"dataset.source=file:{dataset}",
-                "dataset.n_safe=2",
-                "dataset.n_performant=2",
-                "train.batch_size=64",
-                "train.checkpoint=false",
-                "progress=false",
-                *overrides,
-            ],
-        )
 
 
 def _tensors(value, where: str):
@@ -154,7 +134,14 @@ def test_a_device_that_is_not_there_or_not_a_device_is_one_clear_line():
 def test_every_stage_holds_its_tensors_on_the_device_and_no_step_moves_data(
     tmp_path, tiny_pc1_dataset, device, algo, compiled
 ):
-    cfg = _settings(tiny_pc1_dataset, device, algo, f"train.compile={str(compiled).lower()}")
+    cfg = composed_settings(
+        tiny_pc1_dataset,
+        f"algo={algo}",
+        f"device={device}",
+        "train.batch_size=64",
+        "train.checkpoint=false",
+        f"train.compile={str(compiled).lower()}",
+    )
     with claim_runs(cfg, tmp_path) as claim:
         run = pretrain(open_runs(claim)[0])
         steps = one_seed(run)

@@ -5,36 +5,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
 from spoil_torchrl.runs.directory import LOCK_NAME
 from spoil_torchrl.runs.lifecycle import claim_runs, open_runs, pretrain
 from spoil_torchrl.runs.seed_run import recorded_failure
 from spoil_torchrl.runs.training import train_one
-
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
-
-
-def _settings(dataset, *overrides):
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(
-            "spoildice_dsrl",
-            overrides=[
-                "preset=smoke",
-                f"dataset.source=file:{dataset}",
-                "dataset.n_safe=2",
-                "dataset.n_performant=2",
-                "progress=false",
-                *overrides,
-            ],
-        )
+from tests.short_runs import composed_settings
 
 
 def test_a_recipe_of_ones_own_trains_and_finishes_a_run(tmp_path, tiny_pc1_dataset):
-    cfg = _settings(tiny_pc1_dataset, "algo=fbc", "train.checkpoint=false")
+    cfg = composed_settings(tiny_pc1_dataset, "algo=fbc", "train.checkpoint=false")
     with claim_runs(cfg, tmp_path) as claim:
         assert not claim.finished and not claim.vectorised
         assert (tmp_path / LOCK_NAME).is_file()  # held while the block runs
@@ -56,7 +38,7 @@ def test_a_recipe_of_ones_own_trains_and_finishes_a_run(tmp_path, tiny_pc1_datas
     assert not (tmp_path / ".hydra" / "hydra.yaml").exists()
 
     # the same command again passes over the finished run (resume=auto) and claims nothing
-    again = _settings(tiny_pc1_dataset, "algo=fbc", "train.checkpoint=false", "resume=auto")
+    again = composed_settings(tiny_pc1_dataset, "algo=fbc", "train.checkpoint=false", "resume=auto")
     with claim_runs(again, tmp_path) as claim:
         assert claim.finished and claim.seeds == []
         assert not (tmp_path / LOCK_NAME).exists()
