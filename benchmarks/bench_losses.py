@@ -7,7 +7,7 @@ Prints updates/s, each as a ratio to the plain reference, for: the library's Los
 (``MultiLossStepper``'s step), the library's compiled step (``CompiledStepper``, ``train.compile=true``), the
 compiled step with float32 products handed to oneDNN (``train.matmul_precision=medium``, the default preset's;
 float32 kernels on this project's CPUs), both again with the gradient penalty's ReLU chain written out
-(``train.penalty_form=relu_chain``: autograd's products on zeros skipped), K seeds vectorised
+(``train.penalty_form=relu_chain``, the presets' default: autograd's products on zeros skipped), K seeds vectorised
 (``VectorizedStepper``, the recipe's ``seeds=[...]``: the compiled step's pure update vmapped over stacked
 parameters, at medium; per seed and in total), a hand-written plain-PyTorch reference of the same step (same
 networks, loss and gradient penalty; with MKL's products, the ratios' base, and at medium), and, when JAX is
@@ -418,6 +418,11 @@ def main() -> None:
         if name in compile_seconds:
             detail += f" compiling {compile_seconds[name]:.0f} s"
         print(f"  {name:<28}: {value:8.1f} updates/s   ratio to reference {value / ref:6.2f}   {detail}")
+    peer_rate = medians.get("JAX peer (XLA jit)")
+    if peer_rate:  # the issue's target: the default compiled step against the peer, same run
+        for name in ("compiled, relu_chain", "compiled"):
+            form = "the default" if name.endswith("relu_chain") else "autograd's penalty"
+            print(f"  {name} ({form}) against the JAX peer: {medians[name] / peer_rate:.2f}x")
     sample = sampling_seconds(args.batch_size, args.obs_dim, args.act_dim)
     print(
         f"  sampling the four roles: {1000 * sample:.2f} ms per batch = "
