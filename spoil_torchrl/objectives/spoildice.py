@@ -175,8 +175,9 @@ def check_support_indicator(support: torch.Tensor, key: NestedKey) -> None:
         f"{key} must be a 0/1 indicator (Eq. 13); got other values. "
         "Write it with SupportEstimator, or point set_keys(support=...) at the right entry."
     )
-    try:
-        torch._assert_async(((support == 0) | (support == 1)).all(), message)
+    indicator = ((support == 0) | (support == 1)).all()
+    try:  # only the assertion's own failure is the message's
+        torch._assert_async(indicator, message)
     except RuntimeError:  # a CPU's answer, at once
         raise ValueError(message) from None
 
