@@ -147,7 +147,7 @@ def test_every_stage_holds_its_tensors_on_the_device_and_no_step_moves_data(
         steps = one_seed(run)
         for _ in range(2):  # every optimiser state made (and a compiled step compiled) before it is examined
             steps.stepper.step(None, steps.sample())
-        on = training_device(device)
+        on = torch.empty(0, device=training_device(device)).device  # "cuda" as its tensors report it: cuda:0
         elsewhere = {name: str(t.device) for name, t in _held(run).items() if t.device != on}
         assert not elsewhere, elsewhere
         assert all(g.device == on for g in run.inputs.buffers._generators.values())
