@@ -96,14 +96,20 @@ class LibraryStep:
 
 class CompiledLibraryStep:
     """The library's compiled step (``CompiledStepper``) over a fresh :class:`LibraryStep`'s losses, with the
-    gradient penalty in ``penalty_form`` (``train.penalty_form``)."""
+    gradient penalty in ``penalty_form`` (``train.penalty_form``), compiled in ``mode`` (``None``: the library's
+    default)."""
 
     def __init__(
-        self, obs_dim: int, act_dim: int, cells: tuple[int, ...], penalty_form: str = "autograd"
+        self,
+        obs_dim: int,
+        act_dim: int,
+        cells: tuple[int, ...],
+        penalty_form: str = "autograd",
+        mode: str | None = None,
     ) -> None:
         step = LibraryStep(obs_dim, act_dim, cells)
         step.dice.penalty_form = penalty_form
-        self.stepper = CompiledStepper({"dice": step.dice, "actor": step.bc}, step.optims)
+        self.stepper = CompiledStepper({"dice": step.dice, "actor": step.bc}, step.optims, mode=mode)
 
     def __call__(self, batch: TensorDict) -> None:
         self.stepper.step(None, batch)

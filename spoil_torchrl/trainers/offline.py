@@ -190,7 +190,9 @@ def scalar_outputs(outputs: Mapping[str, Mapping[str, torch.Tensor]]) -> TensorD
     """
     return TensorDict(
         {
-            f"{name}.{key}": value.detach().float().mean()
+            f"{name}.{key}": value.detach()
+            .float()
+            .reshape(())  # the one value, without a kernel to average it
             for name, out in outputs.items()
             for key, value in out.items()
             if value.numel() == 1

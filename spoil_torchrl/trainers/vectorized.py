@@ -30,6 +30,7 @@ from torch import nn
 from spoil_torchrl.objectives.pure import NotCompilable
 from spoil_torchrl.trainers.compiled import (
     _with_own_code,
+    compile_update,
     detached,
     pure_losses,
     random_streams,
@@ -273,9 +274,8 @@ class VectorizedStepper(MultiLossStepper):
         return torch.stack([s.losses[name].term_parameters()[key].detach() for s in self.steppers])
 
     def _build(self):
-        mode = self.mode or ("reduce-overhead" if self.device.type == "cuda" else None)
         fn = _with_own_code(self._update, f"vectorized_update_{len(self.seeds)}_seeds")
-        return torch.compile(fn, mode=mode, fullgraph=True, dynamic=False)
+        return compile_update(fn, self.device, self.mode)
 
     def seed_inputs(self, batches: Sequence[TensorDictBase]) -> dict[str, dict[str, torch.Tensor]]:
         """Every seed's inputs (drawn from its own random stream), stacked along a leading seed dimension."""

@@ -3,6 +3,7 @@ clean (logged) fall-back to the eager step."""
 
 from __future__ import annotations
 
+import copy
 import logging
 
 import pytest
@@ -88,6 +89,33 @@ def test_compiled_steps_are_deterministic(batches):
     _, second, _ = run(CompiledStepper(*adam(*spoildice("normal", 1e-4))), batches)
     for key, value in first.items():
         assert torch.equal(second[key], value), key
+
+
+def test_the_cpu_steps_cpp_wrapper_computes_the_python_wrappers_numbers_bit_for_bit(batches):
+    """On a CPU the step is compiled with Inductor's C++ wrapper; ``mode="default"`` keeps the Python one.
+    The kernels are the same, so every output and parameter is equal, not close."""
+    cpp = CompiledStepper(*adam(*spoildice("normal", 1e-4)))
+    python = CompiledStepper(*adam(*spoildice("normal", 1e-4)), mode="default")
+    (cpp_out, cpp_params, _), (py_out, py_params, _) = run(cpp, batches), run(python, batches)
+    assert cpp.compiled and python.compiled
+    for a, b in zip(cpp_out, py_out, strict=True):
+        assert all(torch.equal(a[key], b[key]) for key in a.keys())
+    assert all(torch.equal(cpp_params[key], value) for key, value in py_params.items())
+
+
+def test_a_compiled_stepper_loaded_mid_run_continues_as_the_run_it_was_loaded_from(batches):
+    """The compiled step keeps its parameters from step to step: a state loaded after it compiled is the one it
+    trains on (loading copies into the optimisers' parameters), step for step as the stepper it came from."""
+    source = CompiledStepper(*adam(*spoildice("normal", 1e-4)))
+    run(source, batches[:2])
+    target = CompiledStepper(*adam(*spoildice("normal", 1e-4)))
+    run(target, batches[3:])  # compiled, and one step away from its start: not the source's state
+    target.load_state_dict(
+        copy.deepcopy(source.state_dict())
+    )  # as from a checkpoint: Adam's moments not shared
+    _, expected, _ = run(source, batches[2:])
+    _, got, _ = run(target, batches[2:])
+    assert all(torch.equal(got[key], value) for key, value in expected.items())
 
 
 def test_a_subclass_of_a_loss_compiles_and_trains_as_its_parent(batches):
