@@ -7,7 +7,8 @@ Prints updates/s, each as a ratio to the plain reference, for: the library's Los
 (``MultiLossStepper``'s step), the library's compiled step (``CompiledStepper``, ``train.compile=true``), the
 compiled step with float32 products handed to oneDNN (``train.matmul_precision=medium``, the default preset's;
 float32 kernels on this project's CPUs), both again with the gradient penalty's ReLU chain written out
-(``train.penalty_form=relu_chain``, the presets' default: autograd's products on zeros skipped), K seeds vectorised
+(``train.penalty_form=relu_chain``, the presets' default: autograd's products on zeros skipped), the chain's step
+with Inductor's Python wrapper instead of the C++ one the library compiles with on a CPU, K seeds vectorised
 (``VectorizedStepper``, the recipe's ``seeds=[...]``: the compiled step's pure update vmapped over stacked
 parameters, at medium; per seed and in total), a hand-written plain-PyTorch reference of the same step (same
 networks, loss and gradient penalty; with MKL's products, the ratios' base, and at medium), and, when JAX is
@@ -331,6 +332,11 @@ def main() -> None:
             "compiled, relu_chain, medium",
             "medium",
             lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain"),
+        ),
+        (  # the same kernels called from Inductor's Python wrapper instead of its C++ one
+            "compiled, relu_chain, Python wrapper",
+            "highest",
+            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain", mode="default"),
         ),
         (
             f"{args.seeds} seeds vmapped",

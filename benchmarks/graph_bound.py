@@ -25,6 +25,7 @@ from bench_losses import CompiledLibraryStep, LibraryStep, make_batch, rate
 from jax_peer import JaxStep, import_jax, jax_rate
 
 from spoil_torchrl.trainers.compiled import (
+    compile_update,
     detached,
     pure_losses,
     step_inputs,
@@ -78,7 +79,7 @@ class GraphStep:
                     p.sub_(rates[n][k] * first[n][k] / correction1 / denominator)
             return scalars
 
-        self.fn = torch.compile(update, fullgraph=True, dynamic=False)
+        self.fn = compile_update(update, torch.device("cpu"))  # as the library compiles its step
 
     def __call__(self, batch) -> None:
         self.fn(self.params, *self.moments, self.count, step_inputs(self.losses, self.earlier, batch))
