@@ -9,10 +9,12 @@ peer (``jax_peer.py``, needs the ``bench`` extra):
 * ``graph + Adam``: one compiled graph that computes the gradients and applies Adam (Inductor's code, not
   PyTorch's fused kernel) to parameters made into plain tensors once, with the outputs reduced in the graph;
 * ``graph alone``: the same graph without any optimiser step (it returns the gradients): what the step would
-  cost if everything around the gradients were free.
+  cost if everything around the gradients were free;
+* ``JAX, no Adam``: the peer's jitted step without its Adam update (it returns the gradients), the peer's own
+  graph alone, to compare ``graph alone`` with like for like.
 
 The two prototypes are measurements, not training code: they skip the recipe's optimiser objects, schedules and
-checkpoints. If ``graph alone`` is slower than the peer, whose step includes its Adam, the gap is inside the graph.
+checkpoints. If ``graph alone`` is slower than ``JAX, no Adam``, the gap is inside the graph.
 """
 
 from __future__ import annotations
@@ -106,14 +108,19 @@ def main() -> None:
     }
     for step in steps.values():
         rate(step, batches, 20)  # compiles, warms up
-    peer = JaxStep(28, 2, (256, 256))
-    peer_batches = [peer.batch(b) for b in batches]
-    jax_rate(peer, peer_batches, 20)
-    rates: dict[str, list[float]] = {name: [] for name in [*steps, "JAX peer"]}
+    peers = {
+        "JAX peer": JaxStep(28, 2, (256, 256)),
+        "JAX, no Adam": JaxStep(28, 2, (256, 256), optimizer=False),
+    }
+    peer_batches = [peers["JAX peer"].batch(b) for b in batches]
+    for peer in peers.values():
+        jax_rate(peer, peer_batches, 20)
+    rates: dict[str, list[float]] = {name: [] for name in [*steps, *peers]}
     for _ in range(args.repeats):
         for name, step in steps.items():
             rates[name].append(rate(step, batches, args.steps))
-        rates["JAX peer"].append(jax_rate(peer, peer_batches, args.steps))
+        for name, peer in peers.items():
+            rates[name].append(jax_rate(peer, peer_batches, args.steps))
     medians = {name: statistics.median(runs) for name, runs in rates.items()}
     for name, value in medians.items():
         runs = [round(r, 1) for r in rates[name]]

@@ -86,6 +86,8 @@ class JaxStep:
         cells: hidden layer sizes of nu and the policy.
         gamma, gradient_penalty, lr: the step's constants (the bench's).
         seed: initial parameters and the penalty's random stream.
+        optimizer: ``False`` leaves Adam out: the jitted step computes the gradients (returned, so XLA keeps
+            them) and leaves the parameters as they are, to time the gradient graph alone.
     """
 
     def __init__(
@@ -98,6 +100,7 @@ class JaxStep:
         gradient_penalty: float = 10.0,
         lr: float = 3e-5,
         seed: int = 0,
+        optimizer: bool = True,
     ) -> None:
         import jax
         import jax.numpy as jnp
@@ -110,7 +113,7 @@ class JaxStep:
             "pi": _mlp_init(k_pi, [obs_dim, *cells, 2 * act_dim]),
             "lagrange": jnp.zeros(()),
         }
-        optimizer = optax.adam(lr)
+        optimizer, use_optimizer = optax.adam(lr), optimizer
         self.state = (params, optimizer.init(params))
         clip, bound = 1.0 - 1e-6, math.atanh(1.0 - 1e-6)
 
@@ -155,8 +158,10 @@ class JaxStep:
             params, opt_state = state
             key, sub = jax.random.split(key)
             value, grads = jax.value_and_grad(losses)(params, batch, sub)
+            if not use_optimizer:
+                return (params, opt_state), key, (value, grads)
             updates, opt_state = optimizer.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), key, value
+            return (optax.apply_updates(params, updates), opt_state), key, (value, None)
 
         self._step = jax.jit(step, donate_argnums=(0,))
         self._jax = jax
@@ -178,7 +183,7 @@ class JaxStep:
         return {k: jnp.asarray(v.numpy()) for k, v in arrays.items()}
 
     def __call__(self, batch: dict) -> None:
-        self.state, self.key, value = self._step(self.state, batch, self.key)
+        self.state, self.key, (value, _) = self._step(self.state, batch, self.key)
         return value
 
     def flops(self, batch: dict) -> float:
