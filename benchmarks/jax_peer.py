@@ -113,8 +113,8 @@ class JaxStep:
             "pi": _mlp_init(k_pi, [obs_dim, *cells, 2 * act_dim]),
             "lagrange": jnp.zeros(()),
         }
-        optimizer, use_optimizer = optax.adam(lr), optimizer
-        self.state = (params, optimizer.init(params))
+        adam = optax.adam(lr)
+        self.state = (params, adam.init(params))
         clip, bound = 1.0 - 1e-6, math.atanh(1.0 - 1e-6)
 
         def nu(p, states):
@@ -158,9 +158,9 @@ class JaxStep:
             params, opt_state = state
             key, sub = jax.random.split(key)
             value, grads = jax.value_and_grad(losses)(params, batch, sub)
-            if not use_optimizer:
+            if not optimizer:
                 return (params, opt_state), key, (value, grads)
-            updates, opt_state = optimizer.update(grads, opt_state, params)
+            updates, opt_state = adam.update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), key, (value, None)
 
         self._step = jax.jit(step, donate_argnums=(0,))

@@ -264,6 +264,7 @@ class VectorizedStepper(MultiLossStepper):
         )
         self.rng_states = [_copy_rng(s if isinstance(s, tuple) else (s, None)) for s in rng_states]
         self.device = next(iter(next(iter(self.params.values())).values())).device
+        self._plain = detached(self.params)  # the update's arguments: views that follow the in-place updates
         self.compile, self.mode = bool(compile), mode
         self.compiled = False
         self._update = torch.vmap(update_gradients(names))
@@ -305,7 +306,7 @@ class VectorizedStepper(MultiLossStepper):
         if isinstance(sub_batch, TensorDictBase):
             sub_batch = [sub_batch.get(f"seed{seed}") for seed in self.seeds]
         inputs = self.seed_inputs(sub_batch)
-        args = (detached(self.params), inputs)
+        args = (self._plain, inputs)
         if self.compile and self._fn is None:
             self._fn = self._build()
         if self._fn is not None:
