@@ -20,6 +20,12 @@ Then, without the trace and with the step's default wrapper, the step's parts in
 (read once and kept), the inputs (reads and the penalty's draws), the compiled graph's call, the gradients handed
 to the three Adam steps, the outputs.
 
+With ``--peer`` (the ``bench`` extra installed), the JAX peer's step (``jax_peer.py``) is traced the same way
+with XLA's own profiler (``jax.profiler``): milliseconds per step in each operation of its compiled program, in
+three groups: products (XLA's ``dot`` instructions and the YNNPACK fusions built around one), its other fusions
+(elementwise, reductions, its Adam) and copies. XLA's trace slows its step far more than PyTorch's does (its
+traced and untraced step times are printed): read the peer's lines as shares, not times.
+
 The trace slows the step down a little; the shares are what it is for. Timings on shared 2-core machines vary by
 30-50 % between runs: compare forms within one run.
 """
@@ -28,7 +34,10 @@ from __future__ import annotations
 
 import argparse
 import collections
+import re
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 import torch._inductor.config as inductor_config
@@ -60,7 +69,9 @@ def profile(form: str, steps: int, precision: str, batches) -> tuple[dict, list,
     # kernels are the same (bit for bit), the wrapper's own time is not.
     step = CompiledLibraryStep(28, 2, (256, 256), penalty_form=form, mode="default")
     with matmul_precision(precision):
-        rate(step, batches, 20)  # compiles, warms up
+        # each generated kernel its own profiler event: compiled in, so only for this traced step
+        with inductor_config.patch({"cpp.enable_kernel_profile": True}):
+            rate(step, batches, 20)  # compiles, warms up
         with torch_profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
             start = time.perf_counter()
             rate(step, batches, steps)
@@ -121,6 +132,75 @@ def outside_graph(form: str, steps: int, precision: str, batches) -> dict[str, f
     return dict(parts)
 
 
+def xla_operations(hlo: str) -> dict[str, tuple[str, str]]:
+    """The operations of an optimised HLO module's entry computation: name -> (group, output shape); a fusion
+    whose computation holds a ``dot`` counts as a product.
+
+    >>> module = '''%fused_computation.1 (p: f32[4,2]) -> f32[4,4] {
+    ...   ROOT %d = f32[4,4]{1,0} dot(%p, %p), lhs_contracting_dims={1}, rhs_contracting_dims={1}
+    ... }
+    ...
+    ... ENTRY %main (x: f32[4,2]) -> f32[4,4] {
+    ...   %x = f32[4,2]{1,0} parameter(0)
+    ...   %copy.1 = f32[4,2]{0,1} copy(%x)
+    ...   ROOT %ynn_fusion = f32[4,4]{1,0} fusion(%copy.1), kind=kCustom, calls=%fused_computation.1
+    ... }'''
+    >>> xla_operations(module)
+    {'copy.1': ('copies', 'f32[4,2]'), 'ynn_fusion': ('products', 'f32[4,4]')}
+    """
+    bodies: dict[str, str] = {}
+    for block in re.split(r"\n(?=%|ENTRY)", hlo):
+        header = re.match(r"(?:ENTRY )?%([\w.\-]+)", block)
+        if header:
+            bodies["ENTRY" if block.startswith("ENTRY") else header.group(1)] = block
+    operations = {}
+    for line in bodies.get("ENTRY", "").splitlines():
+        found = re.match(r"\s*(?:ROOT )?%([\w.\-]+) = (\w+\[[\d,]*\])\S* (\w+)\(", line)
+        if not found or found.group(3) in ("parameter", "constant", "tuple", "get-tuple-element", "bitcast"):
+            continue
+        name, shape, op = found.groups()
+        called = re.search(r"calls=%([\w.\-]+)", line)
+        if op == "dot" or (op == "fusion" and called and " dot(" in bodies.get(called.group(1), "")):
+            group = "products"
+        elif op in ("copy", "transpose"):
+            group = "copies"
+        else:
+            group = "other operations (elementwise, reductions, Adam, loops)"
+        operations[name] = (group, shape)
+    return operations
+
+
+def peer_profile(jax, steps: int, batches) -> tuple[dict, list, float, float]:
+    """The JAX peer's step under XLA's profiler: milliseconds per step by group and per operation (with its
+    output shape), the traced step's wall time and the untraced one (ms)."""
+    from jax.profiler import ProfileData
+    from jax_peer import JaxStep, jax_rate
+
+    peer = JaxStep(28, 2, (256, 256))
+    peer_batches = [peer.batch(b) for b in batches]
+    jax_rate(peer, peer_batches, 20)  # compiles, warms up
+    untraced = 1e3 / jax_rate(peer, peer_batches, steps)
+    with tempfile.TemporaryDirectory() as folder:
+        jax.profiler.start_trace(folder)
+        start = time.perf_counter()
+        jax_rate(peer, peer_batches, steps)
+        wall = (time.perf_counter() - start) * 1e3 / steps
+        jax.profiler.stop_trace()
+        data = ProfileData.from_file(str(next(Path(folder).rglob("*.xplane.pb"))))
+    operations = xla_operations(peer._step.lower(peer.state, peer_batches[0], peer.key).compile().as_text())
+    per_operation: dict[str, float] = collections.Counter()
+    for plane in data.planes:
+        for line in plane.lines:
+            for event in line.events:
+                if event.name in operations:  # XLA runs independent operations on two threads: both count
+                    per_operation[event.name] += event.duration_ns / 1e6 / steps
+    groups: dict[str, float] = collections.Counter()
+    for name, ms in per_operation.items():
+        groups[operations[name][0]] += ms
+    table = sorted(((ms, name, *operations[name]) for name, ms in per_operation.items()), reverse=True)
+    return dict(groups), table, wall, untraced
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -130,10 +210,17 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--precision", default="highest", help="float32 matmul precision (highest: MKL)")
     parser.add_argument("--top", type=int, default=12, help="products listed per form")
+    parser.add_argument("--peer", action="store_true", help="also the JAX peer under XLA's profiler")
     args = parser.parse_args()
+    jax = None
+    if args.peer:
+        from jax_peer import import_jax
+
+        jax = import_jax(args.threads)  # before torch runs anything: XLA reads its threads on import
+        if jax is None:
+            raise SystemExit('--peer needs JAX: pip install -e ".[bench]"')
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    inductor_config.cpp.enable_kernel_profile = True  # each generated kernel is its own profiler event
     batches = [make_batch(512, 512, 28, 2) for _ in range(8)]
     for form in args.forms:
         categories, table, wall = profile(form, args.steps, args.precision, batches)
@@ -151,6 +238,17 @@ def main() -> None:
         for ms, calls, flops, (name, shapes) in table[: args.top]:
             rate_gflops = calls * flops / (ms / 1e3) / 1e9 if ms > 0 else 0.0
             print(f"    {ms:6.2f} ms  {calls} x {name:<11} {shapes:<48} {rate_gflops:5.0f} GFLOP/s")
+    if jax is not None:
+        groups, table, wall, untraced = peer_profile(jax, args.steps, batches)
+        print(
+            f"JAX peer: {wall:.1f} ms per step under XLA's trace, {untraced:.1f} ms without it; milliseconds per "
+            "step under the trace:"
+        )
+        for name, ms in sorted(groups.items(), key=lambda kv: -kv[1]):
+            print(f"  {name:<58} {ms:7.2f} ms  {100 * ms / sum(groups.values()):5.1f} %")
+        print(f"  operations (top {args.top}):")
+        for ms, name, group, shape in table[: args.top]:
+            print(f"    {ms:6.2f} ms  {name:<32} {shape:<16} {group.split(' ')[0]}")
 
 
 if __name__ == "__main__":
