@@ -186,10 +186,13 @@ class JaxStep:
         self.state, self.key, (value, _) = self._step(self.state, batch, self.key)
         return value
 
+    def compiled(self, batch: dict):
+        """The jitted update as XLA compiled it for ``batch``'s shapes (its optimised module: ``.as_text()``)."""
+        return self._step.lower(self.state, batch, self.key).compile()
+
     def flops(self, batch: dict) -> float:
         """XLA's count of the jitted update's floating-point operations (``cost_analysis``)."""
-        compiled = self._step.lower(self.state, batch, self.key).compile()
-        analysis = compiled.cost_analysis()
+        analysis = self.compiled(batch).cost_analysis()
         if isinstance(analysis, list):  # older JAX: one dict per device
             analysis = analysis[0]
         return float(analysis["flops"])

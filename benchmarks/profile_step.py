@@ -187,7 +187,7 @@ def peer_profile(jax, steps: int, batches) -> tuple[dict, list, float, float]:
         wall = (time.perf_counter() - start) * 1e3 / steps
         jax.profiler.stop_trace()
         data = ProfileData.from_file(str(next(Path(folder).rglob("*.xplane.pb"))))
-    operations = xla_operations(peer._step.lower(peer.state, peer_batches[0], peer.key).compile().as_text())
+    operations = xla_operations(peer.compiled(peer_batches[0]).as_text())
     per_operation: dict[str, float] = collections.Counter()
     for plane in data.planes:
         for line in plane.lines:
