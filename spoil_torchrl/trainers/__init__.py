@@ -1,6 +1,7 @@
 """Training loops: TorchRL Trainer glue for offline learning."""
 
 from spoil_torchrl.trainers.compiled import CompiledStepper
+from spoil_torchrl.trainers.fused_adam import FusedAdamSteps
 from spoil_torchrl.trainers.offline import (
     MultiLossStepper,
     OfflineBatchSource,
@@ -12,6 +13,7 @@ from spoil_torchrl.trainers.offline import (
 
 __all__ = [
     "CompiledStepper",
+    "FusedAdamSteps",
     "MultiLossStepper",
     "OfflineBatchSource",
     "SampleBuffers",

@@ -14,8 +14,9 @@ optimisers, so parameters, optimiser state, schedules, checkpoints and resuming 
 What differs from the eager step, and why the numbers agree only to float tolerance:
 
 * the compiler fuses and reorders float operations;
-* Adam runs PyTorch's fused kernel (:func:`use_fused_adam`), whose floats differ from the default kernel's in
-  the last bit.
+* Adam runs PyTorch's fused kernel (:func:`~spoil_torchrl.trainers.fused_adam.use_fused_adam`, called
+  straight by :class:`~spoil_torchrl.trainers.fused_adam.FusedAdamSteps`), whose floats differ from the default
+  kernel's in the last bit.
 
 The random numbers (the penalty's interpolation points) are drawn outside the graph, in the eager step's order,
 so a compiled run consumes the same random stream as an eager one; a compiled run is as deterministic as an
@@ -40,6 +41,7 @@ from torch.func import grad_and_value
 from torchrl.objectives import LossModule
 
 from spoil_torchrl.objectives.pure import NotCompilable
+from spoil_torchrl.trainers.fused_adam import FusedAdamSteps, use_fused_adam
 from spoil_torchrl.trainers.offline import MultiLossStepper, scalar_outputs
 
 log = logging.getLogger(__name__)
@@ -94,45 +96,13 @@ def detached(parameters: Mapping[str, Mapping[str, torch.Tensor]]) -> dict[str, 
     return {name: {k: p.detach() for k, p in ps.items()} for name, ps in parameters.items()}
 
 
-def set_gradients(parameters: Mapping[str, Mapping[str, torch.Tensor]], grads: Mapping) -> None:
-    """Give every parameter its gradient from :func:`update_gradients`' result (the same structure)."""
+def set_gradients(parameters: Mapping[str, Mapping[str, torch.Tensor]], grads: Mapping | None) -> None:
+    """Give every parameter its gradient from :func:`update_gradients`' result (the same structure); with
+    ``grads=None``, drop them. A compiled step drops them once its optimisers have stepped, so their memory is
+    free for the next step's graph (kept, they made the step 2-4 % slower on the bench's SpoilDICE step)."""
     for name, ps in parameters.items():
         for key, p in ps.items():
-            p.grad = grads[name][key]
-
-
-def use_fused_adam(optimizers) -> None:
-    """Switch the (exactly) ``torch.optim.Adam`` / ``AdamW`` optimizers among ``optimizers`` (or wrapped by a
-    :class:`~spoil_torchrl.trainers.StepEvery`) to PyTorch's fused kernel, one kernel per step for all their
-    parameters instead of a few per tensor (on CPU 0.17 ms against 0.49 ms for the default networks' twelve
-    tensors). The update is Adam's; its floats differ from the default kernel's in the last bit, which is why the
-    eager stepper keeps the default. Optimizers of other classes, or with parameters the fused kernel does not
-    take (not floating point, or on a device without it), are left as they are.
-
-    Examples:
-        >>> optim = torch.optim.Adam([nn.Parameter(torch.zeros(3))], lr=1e-3)
-        >>> use_fused_adam([optim])
-        >>> optim.param_groups[0]["fused"], optim.param_groups[0]["foreach"]
-        (True, False)
-    """
-    try:  # a private helper of torch.optim: the devices with fused kernels
-        from torch.optim.optimizer import _get_fused_kernels_supported_devices
-
-        devices = _get_fused_kernels_supported_devices()
-    except ImportError:
-        devices = ["cpu", "cuda"]
-    for optim in optimizers:
-        optim = getattr(optim, "optimizer", optim)  # StepEvery holds one
-        if type(optim) not in (torch.optim.Adam, torch.optim.AdamW):
-            continue
-        params = [p for group in optim.param_groups for p in group["params"]]
-        if any(group["differentiable"] for group in optim.param_groups) or not all(
-            p.is_floating_point() and p.device.type in devices for p in params
-        ):
-            continue
-        for group in optim.param_groups:
-            group["fused"], group["foreach"] = True, False
-        optim.defaults.update(fused=True, foreach=False)
+            p.grad = None if grads is None else grads[name][key]
 
 
 def warn_not_compiled(what: str, err: Exception) -> None:
@@ -207,7 +177,8 @@ class CompiledStepper(MultiLossStepper):
     """:class:`~spoil_torchrl.trainers.offline.MultiLossStepper` whose step is one ``torch.compile``\\ d graph.
 
     Same constructor, outputs (``<loss>.<entry>`` scalars), optimisers and state dict as the eager stepper; once
-    its first step has compiled, its Adam optimisers run PyTorch's fused kernel (:func:`use_fused_adam`). When
+    its first step has compiled, its Adam optimisers run PyTorch's fused kernel (:func:`use_fused_adam`, called
+    straight: :class:`~spoil_torchrl.trainers.fused_adam.FusedAdamSteps`). When
     a loss has no pure form (:func:`pure_losses`), or the first step fails to compile, it says so once (a
     warning of this module's logger) and steps eagerly from then on; that first step's random draws are undone
     first, so the run is the eager run.
@@ -242,6 +213,7 @@ class CompiledStepper(MultiLossStepper):
         self.compiled = False  # True once a step has run compiled
         self._fn = None
         self._parameters = None  # (step_parameters, their detached views), kept from step to step
+        self._adam: FusedAdamSteps | None = None  # once compiled: the fused Adam kernel called straight
         try:
             self._earlier: dict[str, frozenset] | None = pure_losses(self.losses)
         except NotCompilable as err:
@@ -260,6 +232,14 @@ class CompiledStepper(MultiLossStepper):
     def load_state_dict(self, state_dict) -> None:
         super().load_state_dict(state_dict)
         self._parameters = None  # loading copies into the same parameters; they are read again all the same
+        if self._adam is not None:
+            self._adam.reset()  # the optimisers' state tensors are new ones
+
+    def _step_optimizers(self) -> None:
+        if self._adam is None:
+            super()._step_optimizers()
+        else:
+            self._adam.step()
 
     def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
         if self._earlier is None:
@@ -282,8 +262,12 @@ class CompiledStepper(MultiLossStepper):
             self._earlier, self._fn = None, None
             set_random_streams(device, rng)
             return super().step(trainer, sub_batch)
-        if not self.compiled:  # the step compiles: from now on Adam runs as one fused kernel too
+        if (
+            not self.compiled
+        ):  # the step compiles: from now on Adam runs as one fused kernel too, called straight
             use_fused_adam(self.optimizers)
+            self._adam = FusedAdamSteps(self.optimizers)
         self.compiled = True
         self._apply_gradients(lambda: set_gradients(parameters, grads), replaces=True)
+        set_gradients(parameters, None)
         return scalar_outputs(outputs)

@@ -243,10 +243,14 @@ class MultiLossStepper(OptimizationStepper):
             for optimizer in self.optimizers:
                 optimizer.zero_grad(set_to_none=True)
         set_gradients()
-        for optimizer in self.optimizers:
-            optimizer.step()
+        self._step_optimizers()
         for scheduler in self.schedulers:
             scheduler.step()
+
+    def _step_optimizers(self) -> None:
+        """One step of every optimiser, in order."""
+        for optimizer in self.optimizers:
+            optimizer.step()
 
     def state_dict(self) -> dict[str, Any]:
         return {

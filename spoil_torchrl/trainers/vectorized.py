@@ -39,9 +39,9 @@ from spoil_torchrl.trainers.compiled import (
     step_inputs,
     step_parameters,
     update_gradients,
-    use_fused_adam,
     warn_not_compiled,
 )
+from spoil_torchrl.trainers.fused_adam import FusedAdamSteps, use_fused_adam
 from spoil_torchrl.trainers.offline import MultiLossStepper, StepEvery
 
 
@@ -269,6 +269,9 @@ class VectorizedStepper(MultiLossStepper):
         self.compiled = False
         self._update = torch.vmap(update_gradients(names))
         self._fn = None
+        self._adam = FusedAdamSteps(
+            self.optimizers
+        )  # the fused kernel called straight, as the compiled step's
 
     def _seeds_values(self, name: str, key: str) -> torch.Tensor:
         """Parameter ``key`` of loss ``name`` of every seed's stepper, stacked along a leading seed dimension."""
@@ -321,6 +324,7 @@ class VectorizedStepper(MultiLossStepper):
         if self._fn is None:
             grads, (_, outputs) = self._update(*args)
         self._apply_gradients(lambda: set_gradients(self.params, grads), replaces=True)
+        set_gradients(self.params, None)
         return TensorDict(
             {
                 f"{name}.{key}": value.detach().float()
@@ -362,6 +366,10 @@ class VectorizedStepper(MultiLossStepper):
                     p.copy_(self._seeds_values(name, key))
         for o in self.stacked:
             o.load_from_seeds()
+        self._adam.reset()  # the stacked optimisers' state tensors are new ones
+
+    def _step_optimizers(self) -> None:
+        self._adam.step()
 
 
 def _copy_rng(state: tuple) -> tuple:

@@ -20,7 +20,7 @@ from spoil_torchrl.precision import (
     matmul_relative_error,
 )
 from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper, StepEvery
-from spoil_torchrl.trainers.compiled import use_fused_adam
+from spoil_torchrl.trainers.fused_adam import use_fused_adam
 from tests.conftest import ACT_DIM, OBS_DIM, dual_batch
 from tests.trainers.steppers import (
     STEPS,
@@ -256,6 +256,20 @@ def test_matmul_precision_is_scoped_and_checked():
     with pytest.raises(ValueError, match="one of \\('highest', 'high', 'medium'\\), got 'bf16'"):
         with matmul_precision("bf16"):
             pass
+
+
+def test_a_compiled_stepper_steps_adam_straight_once_compiled(monkeypatch, batches):
+    losses, optimizers = adam(*spoildice("normal", 1e-4))
+    stepper = CompiledStepper(losses, optimizers)
+    calls = []
+    original = torch.optim.Adam.step
+    monkeypatch.setattr(
+        torch.optim.Adam, "step", lambda self, *a, **k: calls.append(1) or original(self, *a, **k)
+    )
+    for batch in batches[:3]:
+        stepper.step(None, batch)
+    assert stepper.compiled
+    assert len(calls) == len(optimizers)  # the first compiled step's only: it creates the state
 
 
 def test_use_fused_adam_reaches_wrapped_adam_and_leaves_other_optimizers():
