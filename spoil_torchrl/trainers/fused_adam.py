@@ -97,6 +97,21 @@ def _direct_calls(optim) -> list[tuple] | None:
     return calls
 
 
+def _current(optim, calls: list[tuple]) -> bool:
+    """Whether ``calls`` (:func:`_direct_calls`) still hold ``optim``'s groups and state tensors: a
+    ``load_state_dict`` or ``add_param_group`` made outside the stepper shows here (checked on each group's first
+    parameter, a few dictionary lookups a step)."""
+    if len(optim.param_groups) != len(calls):
+        return False
+    for group, (kept, params, exp_avgs, *_) in zip(optim.param_groups, calls, strict=True):
+        state = optim.state.get(params[0]) if params else None
+        if group is not kept or len(group["params"]) != len(params) or not state:
+            return False
+        if state.get("exp_avg") is not exp_avgs[0]:
+            return False
+    return True
+
+
 class FusedAdamSteps:
     """Steps a stepper's optimisers, calling PyTorch's fused Adam kernel straight for those that run it.
 
@@ -106,8 +121,8 @@ class FusedAdamSteps:
     group's parameters, gradients and moments, with the group's current settings), from lists kept between
     steps. Every other optimiser (another class, one with step hooks, a
     :class:`~spoil_torchrl.trainers.StepEvery`) steps through its own ``step``. Parameters without a gradient are
-    skipped, as ``Adam.step`` skips them. Call :meth:`reset` when the optimisers' state is replaced (after
-    ``load_state_dict``): the lists are read again at the next step.
+    skipped, as ``Adam.step`` skips them. An optimiser whose state or groups were replaced (``load_state_dict``,
+    ``add_param_group``) has its lists read again at its next step; :meth:`reset` reads every optimiser's again.
 
     Examples:
         >>> p = torch.nn.Parameter(torch.ones(3))
@@ -136,7 +151,9 @@ class FusedAdamSteps:
                 optim.step()
             self._calls = [_direct_calls(optim) for optim in self.optimizers]
             return
-        for optim, calls in zip(self.optimizers, self._calls, strict=True):
+        for i, (optim, calls) in enumerate(zip(self.optimizers, self._calls, strict=True)):
+            if calls is not None and not _current(optim, calls):  # its state or groups were replaced
+                calls = self._calls[i] = _direct_calls(optim)
             if calls is None:
                 optim.step()
                 continue

@@ -124,3 +124,23 @@ def test_after_reset_the_new_state_tensors_are_the_ones_stepped():
     steps.step()
     steps.step()
     assert optim.state_dict()["state"][0]["step"].item() == before + 2
+
+
+def test_an_optimizer_loaded_behind_the_steps_back_is_stepped_with_its_new_state():
+    ref_model, (ref,) = _train("adamw", direct=False)
+    model, (optim,) = _train("adamw", direct=False)
+    steps = FusedAdamSteps([optim])
+    x = torch.ones(2, 5)
+    for m, o, step in ((ref_model, ref, ref.step), (model, optim, steps.step)):
+        for _ in range(2):
+            o.zero_grad()
+            m(x).sum().backward()
+            step()
+    optim.load_state_dict(copy.deepcopy(ref.state_dict()))  # new state tensors, without reset()
+    for m, o, step in ((ref_model, ref, ref.step), (model, optim, steps.step)):
+        o.zero_grad()
+        m(x).sum().backward()
+        step()
+    for p, q in zip(ref_model.parameters(), model.parameters(), strict=True):
+        assert torch.equal(p, q)
+    _assert_same(_states([ref]), _states([optim]))
