@@ -72,14 +72,34 @@ class Experiment:
 
 def train_section(results_path: Path) -> str | None:
     """The ``train:`` section (the training budget) of the ``config.yaml`` beside a run's ``results.json``, as
-    YAML (``None`` when the run folder has none): runs of one table must share it."""
+    YAML (``None`` when the run folder has none): runs of one table must share it. A setting that older versions
+    did not write reads as the value their runs had (:data:`~spoil_torchrl.runs.resume.IMPLIED_SETTINGS`, e.g.
+    ``train.penalty_form: autograd``), as when such a run is resumed, so a sweep that continues committed cells
+    with that value stated reports with them.
+
+    Examples:
+        >>> import tempfile
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> _ = (folder / "config.yaml").write_text("train:\\n  steps: 10\\n")
+        >>> print(train_section(folder / "results.json"), end="")
+        penalty_form: autograd
+        steps: 10
+    """
     from omegaconf import OmegaConf
+
+    from spoil_torchrl.runs.resume import IMPLIED_SETTINGS
 
     config = results_path.parent / "config.yaml"
     if not config.is_file():
         return None
     train = OmegaConf.load(config).get("train")
-    return None if train is None else OmegaConf.to_yaml(train)
+    if train is None:
+        return None
+    section = OmegaConf.to_container(train)
+    for key, value in IMPLIED_SETTINGS.items():
+        if key.startswith("train."):
+            section.setdefault(key.removeprefix("train."), value)
+    return OmegaConf.to_yaml(dict(sorted(section.items())))
 
 
 def finished_results(folders: Sequence[str | Path], skipped: list) -> Iterator[tuple[Path, dict]]:

@@ -101,6 +101,16 @@ def test_mixed_cells_are_refused(tmp_path):
         load_experiment([tmp_path / "missing"])
 
 
+def test_a_setting_older_runs_did_not_write_reads_as_their_value(tmp_path):
+    _grid(tmp_path)  # written without train.penalty_form: autograd's, as a resumed run reads them
+    stated = _cell(tmp_path, "a", 0.25, "fbc", 0, 0.5, 0.5)
+    (stated / "config.yaml").write_text("train:\n  steps: 10\n  penalty_form: autograd\n")
+    assert load_experiment([tmp_path]).algos == ["bc", "fbc", "spoildice"]
+    (stated / "config.yaml").write_text("train:\n  steps: 10\n  penalty_form: relu_chain\n")
+    with pytest.raises(ValueError, match="different train settings"):
+        load_experiment([tmp_path])
+
+
 def test_statistics_name_the_improvement_over_each_baseline(tmp_path):
     pytest.importorskip("rliable")
     from spoil_torchrl.runs.experiments import experiment_statistics
