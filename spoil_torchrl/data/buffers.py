@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -117,9 +117,27 @@ class DualDemoBuffers:
     def __getitem__(self, role: str) -> TensorDictReplayBuffer:
         return self.buffers[role]
 
-    def sample(self) -> TensorDict:
-        """One batch per role, ``TensorDict({role: batch, ..., "init": batch}, batch_size=[])``."""
-        return TensorDict({role: buffer.sample() for role, buffer in self.buffers.items()}, batch_size=[])
+    def sample(self, roles: Sequence[str] | None = None) -> TensorDict:
+        """One batch per role, ``TensorDict({role: batch, ..., "init": batch}, batch_size=[])``; with ``roles``,
+        of those roles only (what a stage's losses read: :func:`~spoil_torchrl.objectives.keys.roles_read`).
+        Each role draws from its own generator, so leaving a role out changes no other role's batches.
+
+        Examples:
+            >>> from tensordict import TensorDict
+            >>> episodes = TensorDict({"observation": torch.randn(4, 2), "episode": torch.tensor([0, 0, 1, 1]),
+            ...                        "is_init": torch.tensor([[True], [False], [True], [False]])}, [4])
+            >>> buffers = DualDemoBuffers(episodes, {"safe": [0], "unlabeled": [0, 1]}, batch_size=3)
+            >>> sorted(buffers.sample(["unlabeled", "init"]).keys())
+            ['init', 'unlabeled']
+        """
+        if roles is None:
+            roles = self.roles
+        elif unknown := sorted(set(roles) - set(self.buffers)):
+            raise ValueError(f"no buffer for roles {unknown}; the buffers hold {self.roles}")
+        wanted = set(roles)
+        return TensorDict(
+            {role: buffer.sample() for role, buffer in self.buffers.items() if role in wanted}, batch_size=[]
+        )
 
     def rng_state(self) -> dict[str, torch.Tensor]:
         """Every buffer's sampling-generator state (role -> state), for bit-exact resumption.

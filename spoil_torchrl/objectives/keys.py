@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import torch
@@ -20,6 +20,27 @@ def role_key(role: NestedKey, key: NestedKey) -> NestedKey:
         ('data', 'unlabeled', 'next', 'observation')
     """
     return unravel_key((role, key))
+
+
+def roles_read(losses: Iterable, roles: Sequence[str]) -> list[str] | None:
+    """The roles among ``roles`` whose entries some loss of ``losses`` reads (the first part of its nested
+    ``in_keys``), in ``roles``' order; ``None`` when a loss has no ``in_keys`` or none of them inside a role
+    (a loss that reads the batch its own way: then every role is drawn).
+
+    Examples:
+        >>> class Loss:
+        ...     in_keys = [("unlabeled", "observation"), ("init", "observation")]
+        >>> roles_read([Loss()], ["safe", "performant", "unlabeled", "init"])
+        ['unlabeled', 'init']
+    """
+    read: set[str] = set()
+    for loss in losses:
+        keys = [unravel_key(k) for k in getattr(loss, "in_keys", None) or ()]
+        in_roles = {k[0] for k in keys if isinstance(k, tuple) and k[0] in roles}
+        if not in_roles:
+            return None
+        read |= in_roles
+    return [role for role in roles if role in read]
 
 
 def get_role(tensordict: TensorDictBase, role: NestedKey) -> TensorDictBase:

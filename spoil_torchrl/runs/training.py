@@ -23,6 +23,7 @@ from torch import nn
 from spoil_torchrl.data.collect import ROLLOUT_MODULES
 from spoil_torchrl.data.parallel import RolloutPool, available_cores
 from spoil_torchrl.eval.evaluator import METRICS
+from spoil_torchrl.objectives.keys import roles_read
 from spoil_torchrl.runs.checkpoint import rng_state, set_rng_state
 from spoil_torchrl.runs.seed_run import (
     Clock,
@@ -93,9 +94,11 @@ def one_seed(run: PretrainedRun) -> Steps:
         stepper.load_state_dict(state["stepper"])
         set_rng_state(state["rng"], buffers)
 
+    roles = roles_read(stepper.losses.values(), buffers.roles)  # the others are not drawn
+
     return Steps(
         stepper,
-        buffers.sample,
+        lambda: buffers.sample(roles),
         lambda trainer: [(trainer.state_dict(), rng_state(buffers))],
         resume,
         lambda: "compiled" if getattr(stepper, "compiled", False) else "eager",
@@ -141,9 +144,11 @@ def vectorised_seeds(runs: list[PretrainedRun]) -> Steps:
         for run, state in zip(runs, states, strict=True):
             run.inputs.buffers.set_rng_state(state["rng"]["buffers"])
 
+    roles = roles_read(runs[0].training.stepper.losses.values(), runs[0].inputs.buffers.roles)
+
     return Steps(
         stepper,
-        lambda: stepper.batch([run.inputs.buffers.sample() for run in runs]),
+        lambda: stepper.batch([run.inputs.buffers.sample(roles) for run in runs]),
         seed_states,
         resume,
         lambda: "vectorised, compiled" if stepper.compiled else "vectorised, eager",
