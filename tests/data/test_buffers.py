@@ -57,6 +57,19 @@ def test_sampling_is_reproducible_by_seed(episodes):
     assert not all((a[r, "observation"] == c[r, "observation"]).all() for r in ("safe", "unlabeled"))
 
 
+def test_drawing_some_roles_draws_the_same_batches_for_them(episodes):
+    full, some = _buffers(episodes, seed=3), _buffers(episodes, seed=3)
+    for _ in range(3):
+        a, b = full.sample(), some.sample(["unlabeled", "init"])
+        assert sorted(b.keys()) == ["init", "unlabeled"]
+        for role in ("unlabeled", "init"):
+            assert (a[role, "observation"] == b[role, "observation"]).all()
+    state = some.rng_state()
+    assert torch.equal(state["safe"], _buffers(episodes, seed=3).rng_state()["safe"])  # never drawn
+    with pytest.raises(ValueError, match=r"no buffer for roles \['expert'\]"):
+        some.sample(["expert"])
+
+
 def test_all_episodes_role_shares_the_dataset(episodes):
     buffers = _buffers(episodes)
     storage = buffers["unlabeled"].storage._storage

@@ -306,3 +306,21 @@ def test_the_keyword_call_returns_the_tensordict_calls_outputs(name):
 def test_the_compiled_update_gives_the_eager_gradients(name):
     case = CASES[name]
     assert_compiles_whole(case.make(), case.batch())
+
+
+def test_roles_read_are_the_roles_of_the_losses_in_keys():
+    from spoil_torchrl.objectives.keys import roles_read
+
+    roles = ["safe", "performant", "unlabeled", "init"]
+    dice = SpoilDICELoss(make_value_network(OBS_DIM, hidden_cells=(8,)))
+    bc = WeightedBCLoss(make_actor(OBS_DIM, ACT_DIM, hidden_cells=(8,)), role="unlabeled")
+    assert roles_read([dice, bc], roles) == ["unlabeled", "init"]
+    performant = WeightedBCLoss(
+        make_actor(OBS_DIM, ACT_DIM, hidden_cells=(8,)), role="performant", weight=None
+    )
+    assert roles_read([performant], roles) == ["performant"]
+
+    class OwnWay(torch.nn.Module):  # reads the batch without naming roles: every role is drawn
+        in_keys = ["observation"]
+
+    assert roles_read([dice, OwnWay()], roles) is None
