@@ -213,7 +213,8 @@ class CompiledStepper(MultiLossStepper):
         self.compiled = False  # True once a step has run compiled
         self._fn = None
         self._parameters = None  # (step_parameters, their detached views), kept from step to step
-        self._adam: FusedAdamSteps | None = None  # once compiled: the fused Adam kernel called straight
+        # once compiled: the fused Adam kernel called straight
+        self._adam: FusedAdamSteps | None = None
         try:
             self._earlier: dict[str, frozenset] | None = pure_losses(self.losses)
         except NotCompilable as err:
@@ -262,9 +263,7 @@ class CompiledStepper(MultiLossStepper):
             self._earlier, self._fn = None, None
             set_random_streams(device, rng)
             return super().step(trainer, sub_batch)
-        if (
-            not self.compiled
-        ):  # the step compiles: from now on Adam runs as one fused kernel too, called straight
+        if not self.compiled:  # from now on Adam runs as one fused kernel, called straight
             use_fused_adam(self.optimizers)
             self._adam = FusedAdamSteps(self.optimizers)
         self.compiled = True

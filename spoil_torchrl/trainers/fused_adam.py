@@ -152,8 +152,10 @@ class FusedAdamSteps:
             self._calls = [_direct_calls(optim) for optim in self.optimizers]
             return
         for i, (optim, calls) in enumerate(zip(self.optimizers, self._calls, strict=True)):
-            if calls is not None and not _current(optim, calls):  # its state or groups were replaced
-                calls = self._calls[i] = _direct_calls(optim)
+            if calls is not None and not _current(optim, calls):  # its state or groups were replaced:
+                optim.step()  # as after reset(), through Adam.step (which makes any state it lacks)
+                self._calls[i] = _direct_calls(optim)
+                continue
             if calls is None:
                 optim.step()
                 continue
@@ -165,12 +167,13 @@ class FusedAdamSteps:
 def _fused_step(group: dict, params, exp_avgs, exp_avg_sqs, max_exp_avg_sqs, steps) -> None:
     """``Adam.step``'s fused update of one parameter group: the parameters that have a gradient, with their
     moments and step counts, in the group's order."""
-    keep = [i for i, p in enumerate(params) if p.grad is not None]
+    grads = [p.grad for p in params]
+    keep = [i for i, g in enumerate(grads) if g is not None]
     if not keep:
         return
     if len(keep) < len(params):
-        params, exp_avgs, exp_avg_sqs, steps = (
-            [xs[i] for i in keep] for xs in (params, exp_avgs, exp_avg_sqs, steps)
+        params, grads, exp_avgs, exp_avg_sqs, steps = (
+            [xs[i] for i in keep] for xs in (params, grads, exp_avgs, exp_avg_sqs, steps)
         )
         max_exp_avg_sqs = [max_exp_avg_sqs[i] for i in keep] if max_exp_avg_sqs else []
     beta1, beta2 = group["betas"]
@@ -178,7 +181,7 @@ def _fused_step(group: dict, params, exp_avgs, exp_avg_sqs, max_exp_avg_sqs, ste
     kernel = torch._fused_adamw_ if group.get("decoupled_weight_decay", False) else torch._fused_adam_
     kernel(
         params,
-        [p.grad for p in params],
+        grads,
         exp_avgs,
         exp_avg_sqs,
         max_exp_avg_sqs,

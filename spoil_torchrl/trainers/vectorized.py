@@ -269,9 +269,8 @@ class VectorizedStepper(MultiLossStepper):
         self.compiled = False
         self._update = torch.vmap(update_gradients(names))
         self._fn = None
-        self._adam = FusedAdamSteps(
-            self.optimizers
-        )  # the fused kernel called straight, as the compiled step's
+        # the fused kernel called straight, as the compiled step's
+        self._adam = FusedAdamSteps(self.optimizers)
 
     def _seeds_values(self, name: str, key: str) -> torch.Tensor:
         """Parameter ``key`` of loss ``name`` of every seed's stepper, stacked along a leading seed dimension."""
