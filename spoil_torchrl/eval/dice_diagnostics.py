@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from spoil_torchrl.objectives.functional import bellman_backup
+from spoil_torchrl.objectives.functional import bellman_backup, effective_sample_size
 
 #: Transitions of the DICE role the diagnostics are computed on (a fixed, seeded subsample).
 DEFAULT_SAMPLE = 10_000
@@ -208,7 +208,7 @@ def dice_diagnostics(
         if in_support is None
         else variance_shares(advantage[inside], in_support),
         "weight_share": weight_shares(weights, groups),
-        "effective_sample_size": float(weights.sum() ** 2 / weights.pow(2).sum() / weights.numel()),
+        "effective_sample_size": float(effective_sample_size(weights)),
     }
     if hasattr(loss, "lagrange"):
         lagrange = loss.lagrange.detach()

@@ -26,7 +26,7 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +38,7 @@ from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from tqdm.auto import tqdm
 
 from spoil_torchrl.experts.lockstep import LockstepCollector
+from spoil_torchrl.experts.ppo_config import PPOConfig
 from spoil_torchrl.experts.ppo_update import PPOLearner, ppo_update
 from spoil_torchrl.experts.replay import ReplayRecorder
 from spoil_torchrl.files import write_atomic
@@ -48,139 +49,6 @@ from spoil_torchrl.runs.resume import check_resumable
 from spoil_torchrl.stack import current_stack
 from spoil_torchrl.tasks import get_env_task
 from spoil_torchrl.trainers.offline import raise_if_stopped, stop_requested
-
-
-@dataclass
-class PPOConfig:
-    """Hyper-parameters of :func:`train_ppo` (defaults: common PPO settings for Safety-Gymnasium tasks).
-
-    ``record_episodes`` > 0 keeps that many of every batch's finished episodes in a trajectory buffer
-    (``replay/``, :class:`~spoil_torchrl.experts.replay.ReplayRecorder`): the replay datasets of the paper's F.2.
-    ``normalize_observations`` puts a running standardisation of the observations in front of the actor and
-    both critics (OmniSafe's ``obs_normalize``): the statistics of every batch so far, fixed within a batch
-    (updated after its PPO update, so a batch's log-probabilities are computed with the statistics it was
-    collected with), saved inside the policy (:func:`~spoil_torchrl.modules.with_observation_norm`).
-    Three of OmniSafe's PPO-Lagrangian settings are options (off by default, as the committed experts were
-    trained): ``advantage_standardization="separate"`` standardises the reward and the cost advantages each on
-    its own before they are combined (``"combined"``: the combined one); ``target_kl`` stops a batch's epochs
-    early once the policy's estimated KL divergence from the one that collected it passes it (OmniSafe: 0.02);
-    ``lr_decay`` lowers the actor's learning rate linearly to 0 over the run.
-    ``cost_penalty`` > 0 (with ``lagrangian=False``) trains on the reward minus ``cost_penalty`` times the cost,
-    a fixed multiplier where PPO-Lagrangian adapts one: a demonstrator that keeps the constraint by a penalty.
-    ``cost_component`` (with ``num_envs`` > 1) trains against one constraint's own cost instead of the task's
-    (:mod:`spoil_torchrl.envs.cost_components`, e.g. ``x_wall`` in SafetyPointCircle2): a demonstrator safe on
-    that constraint only.
-    ``init_actor`` starts the actor from a policy instead of at random (fine-tuning; the critics start afresh):
-    a policy or PPO checkpoint file, or ``zoo:<name>`` for a committed policy of the task, with the same
-    ``hidden_cells``, without observation standardisation. E.g. a demonstrator that keeps one constraint only, tuned
-    from the unconstrained expert with a penalty on that constraint's cost (``docs/several_constraints.md``).
-    ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
-    (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
-    TorchRL environment); ``frames_per_batch`` must split evenly over them.
-    """
-
-    total_frames: int = 1_000_000
-    frames_per_batch: int = 10_000
-    epochs: int = 10
-    minibatch_size: int = 1000
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_epsilon: float = 0.2
-    actor_lr: float = 3e-4
-    critic_lr: float = 1e-3
-    entropy_coeff: float = 0.0
-    max_grad_norm: float = 0.5
-    hidden_cells: tuple[int, ...] = (64, 64)
-    lagrangian: bool = False
-    cost_limit: float = 25.0
-    lagrange_lr: float = 0.035
-    lagrange_init: float = 0.0
-    cost_penalty: float = 0.0
-    cost_component: str | None = None
-    checkpoint_every: int = 5  # batches
-    normalize_observations: bool = False
-    record_episodes: int = 0
-    num_envs: int = 1
-    advantage_standardization: str = "combined"
-    target_kl: float | None = None
-    lr_decay: bool = False
-    init_actor: str | None = None
-    seed: int = 0
-    extra: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        for name in (
-            "total_frames",
-            "frames_per_batch",
-            "epochs",
-            "minibatch_size",
-            "checkpoint_every",
-            "num_envs",
-        ):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"ppo.{name} = {value!r}: expected an integer >= 1")
-        if self.minibatch_size > self.frames_per_batch:
-            raise ValueError(
-                f"ppo.minibatch_size = {self.minibatch_size} is larger than ppo.frames_per_batch = "
-                f"{self.frames_per_batch}"
-            )
-        if self.advantage_standardization not in ("combined", "separate"):
-            raise ValueError(
-                f"ppo.advantage_standardization = {self.advantage_standardization!r}: expected combined or separate"
-            )
-        if self.target_kl is not None and (
-            isinstance(self.target_kl, bool)
-            or not isinstance(self.target_kl, (int, float))
-            or not math.isfinite(self.target_kl)
-            or self.target_kl <= 0
-        ):
-            raise ValueError(f"ppo.target_kl = {self.target_kl!r}: expected null or a finite number > 0")
-        for name in ("lagrangian", "normalize_observations", "lr_decay"):  # Hydra keeps "no" as a string
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"ppo.{name} = {getattr(self, name)!r}: expected true or false")
-        for name in (
-            "gamma",
-            "gae_lambda",
-            "clip_epsilon",
-            "actor_lr",
-            "critic_lr",
-            "max_grad_norm",
-            "lagrange_lr",
-        ):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not math.isfinite(value)
-                or value <= 0
-            ):
-                raise ValueError(f"ppo.{name} = {value!r}: expected a finite number > 0")
-        penalty = self.cost_penalty
-        if isinstance(penalty, bool) or not isinstance(penalty, (int, float)) or not 0 <= penalty < math.inf:
-            raise ValueError(f"ppo.cost_penalty = {penalty!r}: expected a finite number >= 0")
-        if penalty and self.lagrangian:
-            raise ValueError(
-                f"ppo.cost_penalty = {penalty} with ppo.lagrangian=true: PPO-Lagrangian learns its multiplier; "
-                "a fixed penalty needs ppo.lagrangian=false"
-            )
-        if self.cost_component is not None and self.num_envs == 1:
-            raise ValueError(
-                f"ppo.cost_component = {self.cost_component!r} needs ppo.num_envs > 1 (the lockstep collector "
-                "reads each constraint's cost from the simulator)"
-            )
-        if self.init_actor is not None and self.normalize_observations:
-            raise ValueError(
-                "ppo.init_actor with ppo.normalize_observations=true: the running statistics would start afresh "
-                "under a policy tuned to others; fine-tune without observation standardisation"
-            )
-        if self.frames_per_batch % self.num_envs:
-            raise ValueError(
-                f"ppo.frames_per_batch = {self.frames_per_batch} does not split over ppo.num_envs = {self.num_envs}"
-            )
-        if not isinstance(self.record_episodes, int) or self.record_episodes < 0:
-            raise ValueError(f"ppo.record_episodes = {self.record_episodes!r}: expected an integer >= 0")
-        self.hidden_cells = tuple(self.hidden_cells)
 
 
 def batch_seed(seed: int, batch: int) -> int:
@@ -328,37 +196,13 @@ def train_ppo(
         >>> [line["frames"] for line in log]
         [100, 200]
     """
-    if config.num_envs > 1:  # refused before anything is written
-        if env_id is None:
-            raise ValueError("ppo.num_envs > 1 needs train_ppo(..., env_id=<the task>)")
-        length = get_env_task(env_id).episode_length
-        if config.frames_per_batch // config.num_envs < length:
-            raise ValueError(
-                f"ppo.frames_per_batch / ppo.num_envs = {config.frames_per_batch // config.num_envs} steps per "
-                f"environment and batch, fewer than one {env_id} episode ({length} steps): no episode would "
-                "ever finish (no cost estimate for the multiplier); raise frames_per_batch or lower num_envs"
-            )
+    check_collector(config, env_id)  # refused before anything is written
     torch.manual_seed(config.seed)
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     learner = PPOLearner(observation_dim, action_dim, config)
-    state = resumable_state(run_dir, config) if resume else None
-    if state is not None:
-        learner.load_training_state(state["learner"])
-        torch.set_rng_state(state["rng"])
-    elif config.init_actor is not None:
-        load_initial_actor(learner, config, env_id, observation_dim, action_dim)
-    log: list[dict] = [] if state is None else list(state["log"])
-    first = 0 if state is None else int(state["batches"])
-    results = {"status": "training", "config": asdict(config), "stack": current_stack(), "frames": 0}
-    if state is None:
-        write_atomic(run_dir / "config.json", json.dumps(asdict(config), indent=2))
-    else:
-        results.update(state["results"], status="training")
-        results.setdefault("resumed_at", []).append(int(state["frames"]))
-    # the log holds every batch once: what a killed run logged after its training state is dropped
-    write_atomic(run_dir / "log.jsonl", "".join(json.dumps(line) + "\n" for line in log))
-    write_json(run_dir / "results.json", results)
+    log, results = _start(run_dir, learner, config, resume, env_id, observation_dim, action_dim)
+    first = len(log)
     recorder = ReplayRecorder(run_dir / "replay", config.record_episodes) if config.record_episodes else None
     batches = math.ceil(config.total_frames / config.frames_per_batch)
     frames = first * config.frames_per_batch
@@ -390,17 +234,9 @@ def train_ppo(
                 "episode_cost": ep_cost,
                 "episodes": n_episodes,
             }
-            last = index + 1 == batches
-            if (index + 1) % config.checkpoint_every == 0 or last:
-                # the weights that collected this batch, with that batch's episode statistics
-                torch.save(
-                    {
-                        "actor": learner.actor.state_dict(),
-                        "observation_norm": learner.norm is not None,
-                        **line,
-                    },
-                    run_dir / f"ckpt_{frames:09d}.pt",
-                )
+            saving = (index + 1) % config.checkpoint_every == 0 or index + 1 == batches
+            if saving:
+                save_policy(run_dir, learner, line)
             if recorder is not None:
                 recorder.record(batch, index)
             epochs = ppo_update(learner, batch, config, index, ep_cost, batches=batches)
@@ -414,22 +250,8 @@ def train_ppo(
             with open(run_dir / "log.jsonl", "a") as f:
                 f.write(json.dumps(line) + "\n")
             results.update(frames=frames, last=line)
-            stopping = stop_requested() is not None  # SIGTERM: keep this batch, then stop
-            if (index + 1) % config.checkpoint_every == 0 or last or stopping:
-                save_checkpoint(
-                    run_dir / CHECKPOINT_NAME,
-                    {
-                        "config": json.loads(json.dumps(asdict(config))),
-                        "stack": current_stack(),
-                        "batches": index + 1,
-                        "frames": frames,
-                        "learner": learner.training_state(),
-                        "rng": torch.get_rng_state(),
-                        "log": log,
-                        "results": results,
-                    },
-                )
-                write_json(run_dir / "results.json", results)
+            if saving or stop_requested() is not None:  # SIGTERM: keep this batch, then stop
+                _save_training_state(run_dir, learner, config, log, results)
             bar.update(batch.numel())
             bar.set_postfix(ret=f"{ep_return:.1f}", cost=f"{ep_cost:.1f}", lam=f"{line['lagrange']:.2f}")
             raise_if_stopped()
@@ -446,3 +268,79 @@ def train_ppo(
         env.close()
     write_json(run_dir / "results.json", dict(results, status="finished"))
     return log
+
+
+def check_collector(config: PPOConfig, env_id: str | None) -> None:
+    """Refuse lockstep collection (``config.num_envs`` > 1) without a task, or with fewer steps per environment
+    and batch than one episode of it (no episode would finish, so the multiplier would see no cost)."""
+    if config.num_envs == 1:
+        return
+    if env_id is None:
+        raise ValueError("ppo.num_envs > 1 needs train_ppo(..., env_id=<the task>)")
+    length = get_env_task(env_id).episode_length
+    if config.frames_per_batch // config.num_envs < length:
+        raise ValueError(
+            f"ppo.frames_per_batch / ppo.num_envs = {config.frames_per_batch // config.num_envs} steps per "
+            f"environment and batch, fewer than one {env_id} episode ({length} steps): no episode would "
+            "ever finish (no cost estimate for the multiplier); raise frames_per_batch or lower num_envs"
+        )
+
+
+def _start(
+    run_dir: Path,
+    learner: PPOLearner,
+    config: PPOConfig,
+    resume: bool,
+    env_id: str | None,
+    observation_dim: int,
+    action_dim: int,
+) -> tuple[list[dict], dict]:
+    """Set ``learner`` and the random state where the run starts (its training state when resuming, else the
+    initial actor if any), write ``config.json``, ``log.jsonl`` and ``results.json`` for that start, and return
+    the log so far (one line per batch done) and the results being built."""
+    state = resumable_state(run_dir, config) if resume else None
+    if state is not None:
+        learner.load_training_state(state["learner"])
+        torch.set_rng_state(state["rng"])
+    elif config.init_actor is not None:
+        load_initial_actor(learner, config, env_id, observation_dim, action_dim)
+    log: list[dict] = [] if state is None else list(state["log"])
+    results = {"status": "training", "config": asdict(config), "stack": current_stack(), "frames": 0}
+    if state is None:
+        write_atomic(run_dir / "config.json", json.dumps(asdict(config), indent=2))
+    else:
+        results.update(state["results"], status="training")
+        results.setdefault("resumed_at", []).append(int(state["frames"]))
+    # the log holds every batch once: what a killed run logged after its training state is dropped
+    write_atomic(run_dir / "log.jsonl", "".join(json.dumps(line) + "\n" for line in log))
+    write_json(run_dir / "results.json", results)
+    return log, results
+
+
+def save_policy(run_dir: Path, learner: PPOLearner, line: dict) -> None:
+    """``ckpt_<frames>.pt``: the weights that collected the batch of the log line ``line``, with that batch's
+    episode statistics (what the four policy types of the paper are picked from)."""
+    torch.save(
+        {"actor": learner.actor.state_dict(), "observation_norm": learner.norm is not None, **line},
+        run_dir / f"ckpt_{line['frames']:09d}.pt",
+    )
+
+
+def _save_training_state(
+    run_dir: Path, learner: PPOLearner, config: PPOConfig, log: list[dict], results: dict
+) -> None:
+    """The training state a resumed run continues from (atomic, checksummed), then ``results.json``."""
+    save_checkpoint(
+        run_dir / CHECKPOINT_NAME,
+        {
+            "config": json.loads(json.dumps(asdict(config))),
+            "stack": current_stack(),
+            "batches": len(log),
+            "frames": results["frames"],
+            "learner": learner.training_state(),
+            "rng": torch.get_rng_state(),
+            "log": log,
+            "results": results,
+        },
+    )
+    write_json(run_dir / "results.json", results)

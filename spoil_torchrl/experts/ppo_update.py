@@ -5,7 +5,6 @@ standardisation, the multiplier, and the clipped-surrogate epochs over one batch
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDict
@@ -17,11 +16,9 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from spoil_torchrl.divergence import check_finite
+from spoil_torchrl.experts.ppo_config import PPOConfig
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.modules.normalization import STD_EPS, ObservationNormalizer, with_observation_norm
-
-if TYPE_CHECKING:
-    from spoil_torchrl.experts.ppo import PPOConfig
 
 
 class PPOLearner(nn.Module):

@@ -21,6 +21,7 @@ from spoil_torchrl.objectives.functional import (
 )
 from spoil_torchrl.objectives.keys import get_role
 from spoil_torchrl.objectives.pure import Tensors
+from spoil_torchrl.objectives.spoildice import closed_form_log_weight
 
 #: Smallest argument of the reward's logarithm (the reference code's clip in its reward statistics).
 REWARD_LOG_FLOOR = 1e-10
@@ -103,14 +104,9 @@ def safedice_dual(init_nu: torch.Tensor, advantage: torch.Tensor, gamma: float) 
     return log_mean_exp(advantage) + (1.0 - gamma) * init_nu.mean()
 
 
-def safedice_log_weight(advantage: torch.Tensor) -> torch.Tensor:
-    """SafeDICE's closed-form correction :math:`\\log w^*(s,a) = A_\\nu(s,a) - 1` (:math:`w^* = d^*/d_U`).
-
-    Examples:
-        >>> safedice_log_weight(torch.tensor([1.0])).exp().item()
-        1.0
-    """
-    return advantage - 1.0
+#: SafeDICE's closed-form correction :math:`\log w^*(s,a) = A_\nu(s,a) - 1` (:math:`w^* = d^*/d_U`): the same
+#: function of the advantage as SpoilDICE's Eq. (11), so one function serves both.
+safedice_log_weight = closed_form_log_weight
 
 
 class SafeDICELoss(DICELoss):

@@ -2,8 +2,9 @@
 one-hot features.
 
 Everything here uses the library's real pieces -- TorchRL replay buffers, :class:`PUDiscriminatorLoss`,
-:class:`SupportEstimator`, :class:`SpoilDICELoss`, :class:`DemoDICELoss`, :class:`WeightedBCLoss` -- so that the
-learned policy's occupancy can be compared with the exact solutions of
+:class:`SupportEstimator`, :class:`SpoilDICELoss`, :class:`DemoDICELoss`, :class:`WeightedBCLoss`, and the
+offline Trainer of :func:`~spoil_torchrl.trainers.offline_trainer` for every stage -- so that the learned policy's
+occupancy can be compared with the exact solutions of
 :func:`~spoil_torchrl.tabular.solve_spoildice` and :func:`~spoil_torchrl.tabular.solve_demodice`.
 """
 
@@ -17,7 +18,7 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from tqdm.auto import tqdm
+from torchrl.objectives import LossModule
 
 from spoil_torchrl.modules import make_actor, make_discriminator, make_value_network
 from spoil_torchrl.objectives import (
@@ -33,6 +34,7 @@ from spoil_torchrl.objectives.spoildice import check_supports_intersect
 from spoil_torchrl.tabular.cmdp import occupancy
 from spoil_torchrl.tabular.problems import DualDemoProblem
 from spoil_torchrl.tabular.sampling import one_hot, sample_initial_states, sample_transitions
+from spoil_torchrl.trainers.offline import MultiLossStepper, offline_trainer
 
 ROLES = ("safe", "performant", "unlabeled")
 
@@ -79,18 +81,59 @@ def _buffer(data: TensorDict, batch_size: int) -> TensorDictReplayBuffer:
     return buffer
 
 
-def _sample(buffers: dict[str, TensorDictReplayBuffer]) -> TensorDict:
-    return TensorDict({role: buffer.sample() for role, buffer in buffers.items()}, batch_size=[])
+def _sample(buffers: dict[str, TensorDictReplayBuffer]) -> Callable[[], TensorDict]:
+    """A batch source: one fresh batch of every buffer (role -> buffer) per call."""
+    return lambda: TensorDict({role: buffer.sample() for role, buffer in buffers.items()}, batch_size=[])
 
 
-def _step(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    optimizer.step()
+#: A stage's outputs are recorded (``history``, the ``log`` callback) at every this many steps.
+RECORD_EVERY = 100
 
 
-def _sum_losses(out: TensorDict) -> torch.Tensor:
-    return sum(value for key, value in out.items() if key.startswith("loss_"))
+class _RecordingStepper(MultiLossStepper):
+    """A :class:`~spoil_torchrl.trainers.MultiLossStepper` that hands the scalar outputs of every
+    :data:`RECORD_EVERY`-th step to ``record(step, {loss name: {entry: value}})``."""
+
+    def __init__(self, losses, optimizers, schedulers, record: Callable[[int, dict], None]) -> None:
+        super().__init__(losses, optimizers, schedulers)
+        self.record, self.steps = record, 0
+
+    def step(self, trainer, sub_batch):
+        out = super().step(trainer, sub_batch)
+        if self.steps % RECORD_EVERY == 0:
+            grouped = {name: {} for name in self.losses}
+            for key, value in out.items():
+                name, entry = key.split(".", 1)
+                grouped[name][entry] = float(value)
+            self.record(self.steps, grouped)
+        self.steps += 1
+        return out
+
+
+def _train_stage(
+    losses: dict[str, LossModule],
+    optimizers: list[torch.optim.Optimizer],
+    sample: Callable[[], TensorDict],
+    steps: int,
+    *,
+    label: str,
+    progress: bool,
+    record: Callable[[int, dict], None],
+) -> None:
+    """``steps`` optimisation steps of ``losses`` (run in order on each batch, one backward pass through the sum
+    of their ``loss_*`` terms) through the library's offline Trainer, each optimiser under a cosine schedule
+    over the stage, each step on a fresh ``sample()``."""
+    schedules = [torch.optim.lr_scheduler.CosineAnnealingLR(o, max(steps, 1)) for o in optimizers]
+    if steps > 0:
+        stepper = _RecordingStepper(losses, optimizers, schedules, record)
+        offline_trainer(
+            stepper,
+            sample,
+            total_steps=steps,
+            steps_per_batch=min(RECORD_EVERY, steps),
+            progress_bar=progress,
+            progress_label=label,
+        ).train()
 
 
 def _safe_roles(problem: DualDemoProblem) -> list[str]:
@@ -154,9 +197,9 @@ def train_tabular_spoildice(
     n_s, n_a = mdp.n_states, mdp.n_actions
     history: list[dict] = []
 
-    def record(stage: str, out: TensorDict, step: int) -> None:
-        if step % 100 == 0 or step == -1:
-            metrics = {f"{stage}/{k}": float(v.detach()) for k, v in out.items() if v.numel() == 1}
+    def record(step: int, outputs: dict[str, dict[str, float]]) -> None:  # one history line per loss
+        for stage, out in outputs.items():
+            metrics = {f"{stage}/{k}": v for k, v in out.items()}
             history.append({"step": step, **metrics})
             if log is not None:
                 log(metrics, step)
@@ -176,19 +219,21 @@ def train_tabular_spoildice(
     disc_losses = {}
     for role in ("performant", *safe_roles):
         disc = make_discriminator(n_s, n_a, hidden_cells=cfg.discriminator_cells)
-        disc_losses[role] = PUDiscriminatorLoss(
+        disc_losses[f"discriminator_{role}"] = PUDiscriminatorLoss(
             disc, positive=role, gradient_penalty=cfg.discriminator_gradient_penalty
         )
     disc_params = [p for loss in disc_losses.values() for p in loss.parameters()]
     disc_optim = torch.optim.Adam(disc_params, lr=cfg.discriminator_lr)
-    disc_schedule = torch.optim.lr_scheduler.CosineAnnealingLR(disc_optim, max(cfg.discriminator_steps, 1))
-    for step in tqdm(range(cfg.discriminator_steps), desc="discriminators", disable=not progress):
-        batch = _sample(buffers)
-        outs = {role: loss(batch) for role, loss in disc_losses.items()}
-        _step(disc_optim, sum(_sum_losses(out) for out in outs.values()))
-        disc_schedule.step()
-        for role, out in outs.items():
-            record(f"discriminator_{role}", out, step)
+    _train_stage(
+        disc_losses,
+        [disc_optim],
+        _sample(buffers),
+        cfg.discriminator_steps,
+        label="discriminators",
+        progress=progress,
+        record=record,
+    )
+    disc_losses = {name.removeprefix("discriminator_"): loss for name, loss in disc_losses.items()}
 
     # r_P, r_S from Eq. (18); the support indicator from Eq. (13), one per constraint; annotate D_U once.
     ratio_p = LogRatio(disc_losses["performant"].frozen_network())
@@ -219,20 +264,15 @@ def train_tabular_spoildice(
     nu_optim = torch.optim.Adam(dice.nu_network_params.values(True, True), lr=cfg.nu_lr)
     lagrange_optim = torch.optim.Adam([dice.lagrange], lr=cfg.lagrange_lr)
     actor_optim = torch.optim.Adam(policy_loss.parameters(), lr=cfg.actor_lr)
-    optims = (nu_optim, lagrange_optim, actor_optim)
-    schedules = [torch.optim.lr_scheduler.CosineAnnealingLR(o, max(cfg.dice_steps, 1)) for o in optims]
-    for step in tqdm(range(cfg.dice_steps), desc="spoildice", disable=not progress):
-        batch = _sample({role: buffers[role] for role in ("unlabeled", "init")})
-        dice_out = dice(batch)
-        actor_out = policy_loss(batch)
-        for optim in optims:
-            optim.zero_grad(set_to_none=True)
-        (dice_out["loss_nu"] + dice_out["loss_lambda"] + actor_out["loss_actor"]).backward()
-        for optim, schedule in zip(optims, schedules, strict=True):
-            optim.step()
-            schedule.step()
-        record("spoildice", dice_out, step)
-        record("actor", actor_out, step)
+    _train_stage(
+        {"spoildice": dice, "actor": policy_loss},
+        [nu_optim, lagrange_optim, actor_optim],
+        _sample({role: buffers[role] for role in ("unlabeled", "init")}),
+        cfg.dice_steps,
+        label="spoildice",
+        progress=progress,
+        record=record,
+    )
 
     # Output: the learned policy as a table, and its exact occupancy.
     with torch.no_grad():
@@ -330,27 +370,26 @@ def train_tabular_demodice(
     )
     actor = make_actor(n_s, n_a, hidden_cells=(), distribution="categorical")
     policy_loss = WeightedBCLoss(actor, role=regularization, weight="dice_weight")
-    optims = (
+
+    def record(step: int, outputs: dict[str, dict[str, float]]) -> None:  # one history line per step
+        metrics = {f"{stage}/{k}": v for stage, out in outputs.items() for k, v in out.items()}
+        history.append({"step": step, **metrics})
+        if log is not None:
+            log(metrics, step)
+
+    optimizers = [
         torch.optim.Adam(dice.parameters(), lr=cfg.nu_lr),
         torch.optim.Adam(policy_loss.parameters(), lr=cfg.actor_lr),
+    ]
+    _train_stage(
+        {"demodice": dice, "actor": policy_loss},
+        optimizers,
+        _sample(buffers),
+        cfg.dice_steps,
+        label="demodice",
+        progress=progress,
+        record=record,
     )
-    schedules = [torch.optim.lr_scheduler.CosineAnnealingLR(o, max(cfg.dice_steps, 1)) for o in optims]
-    for step in tqdm(range(cfg.dice_steps), desc="demodice", disable=not progress):
-        batch = _sample(buffers)
-        dice_out = dice(batch)
-        actor_out = policy_loss(batch)
-        for optim in optims:
-            optim.zero_grad(set_to_none=True)
-        (dice_out["loss_nu"] + actor_out["loss_actor"]).backward()
-        for optim, schedule in zip(optims, schedules, strict=True):
-            optim.step()
-            schedule.step()
-        if step % 100 == 0:
-            metrics = {f"demodice/{k}": float(v.detach()) for k, v in dice_out.items()}
-            metrics |= {f"actor/{k}": float(v.detach()) for k, v in actor_out.items()}
-            history.append({"step": step, **metrics})
-            if log is not None:
-                log(metrics, step)
 
     with torch.no_grad():
         states = TensorDict({"observation": one_hot(np.arange(n_s), n_s)}, [n_s])
