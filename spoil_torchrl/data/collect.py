@@ -100,6 +100,23 @@ def reference_jobs(env_id: str, *, episodes: int = 10, seed: int = 0) -> dict[st
     }
 
 
+#: The metadata entries :func:`collect` writes itself (a caller's ``metadata`` may not override them).
+COLLECTOR_ENTRIES = frozenset(
+    {
+        "env_id",
+        "seed",
+        "num_envs",
+        "cost_threshold",
+        "segments",
+        "random_return",
+        "safe_high_return",
+        "seconds",
+        "steps",
+        "stack",
+    }
+)
+
+
 def collect(
     env_id: str,
     segments: Sequence[Segment],
@@ -131,23 +148,10 @@ def collect(
     task = get_env_task(env_id)
     if not segments:
         raise ValueError("collect needs at least one segment")
-    reserved = {
-        "env_id",
-        "seed",
-        "num_envs",
-        "cost_threshold",
-        "segments",
-        "random_return",
-        "safe_high_return",
-        "seconds",
-        "steps",
-        "stack",
-    }
-    clash = reserved & set(metadata or {})
+    clash = COLLECTOR_ENTRIES & set(metadata or {})
     if clash:
         raise ValueError(f"metadata may not override the collector's own entries {sorted(clash)}")
     start_time = time.perf_counter()
-    parts, records, first = [], [], 0
     split = cost_components(env_id) if components else None
     jobs = [
         functools.partial(
@@ -165,39 +169,8 @@ def collect(
     ]
     references = reference_jobs(env_id, episodes=reference_episodes, seed=seed)
     jobs += references.values()
-    # one bar over every segment and the reference rollouts, so that its estimate is the whole job's
-    total = sum(job.args[2] for job in jobs) * task.episode_length
-    bar = tqdm(
-        total=total, desc=f"collecting {env_id}", disable=not progress, unit="step", dynamic_ncols=True
-    )
-    here: set[int] = set()  # the jobs this process runs, on the bar as they go
-
-    def run_here(job: functools.partial) -> dict[str, np.ndarray]:
-        here.add(id(job))
-        return job(bar=bar)
-
-    if workers is None:  # a worker's start (about 3 s of a core) pays from some 10 s of rollouts
-        workers = 0 if total < SHARED_STEPS else min(len(jobs), available_cores()) - 1
-    results = []
-    with RolloutPool(workers, warm_up=ROLLOUT_MODULES) as pool:
-        for job, arrays in zip(jobs, pool.map(jobs, run_here), strict=True):
-            if id(job) not in here:  # a worker's: the bar moves when it is done
-                bar.update(job.args[2] * task.episode_length)
-            results.append(arrays)
-    bar.close()
-    for segment, arrays in zip(segments, results[: len(segments)], strict=True):
-        returns, costs = episode_totals(arrays)
-        records.append(
-            {
-                **asdict(segment),
-                "start": first,
-                "stop": first + segment.episodes,
-                "mean_return": float(returns.mean()),
-                "mean_cost": float(costs.mean()),
-            }
-        )
-        first += segment.episodes
-        parts.append(arrays)
+    results = _run_all(jobs, f"collecting {env_id}", task.episode_length, progress, workers)
+    records, parts = _segment_records(segments, results[: len(segments)])
     references = dict.fromkeys(reference_policies(env_id)) | {
         name: float(episode_totals(arrays)[0].mean())
         for name, arrays in zip(references, results[len(segments) :], strict=True)
@@ -216,6 +189,52 @@ def collect(
         **(metadata or {}),
     }
     return write_dsrl_file(path, arrays, metadata=meta)
+
+
+def _run_all(
+    jobs: list[functools.partial], desc: str, episode_length: int, progress: bool, workers: int | None
+) -> list[dict[str, np.ndarray]]:
+    """Every rollout job's arrays, in order, from this process and ``workers`` worker processes, under one
+    progress bar over all of them (so that its estimate is the whole job's)."""
+    total = sum(job.args[2] for job in jobs) * episode_length
+    bar = tqdm(total=total, desc=desc, disable=not progress, unit="step", dynamic_ncols=True)
+    here: set[int] = set()  # the jobs this process runs, on the bar as they go
+
+    def run_here(job: functools.partial) -> dict[str, np.ndarray]:
+        here.add(id(job))
+        return job(bar=bar)
+
+    if workers is None:  # a worker's start (about 3 s of a core) pays from some 10 s of rollouts
+        workers = 0 if total < SHARED_STEPS else min(len(jobs), available_cores()) - 1
+    results = []
+    with RolloutPool(workers, warm_up=ROLLOUT_MODULES) as pool:
+        for job, arrays in zip(jobs, pool.map(jobs, run_here), strict=True):
+            if id(job) not in here:  # a worker's: the bar moves when it is done
+                bar.update(job.args[2] * episode_length)
+            results.append(arrays)
+    bar.close()
+    return results
+
+
+def _segment_records(
+    segments: Sequence[Segment], results: list[dict[str, np.ndarray]]
+) -> tuple[list[dict], list[dict[str, np.ndarray]]]:
+    """Each segment's metadata record (its episode range in the file, mean return and cost) and its arrays."""
+    records, parts, first = [], [], 0
+    for segment, arrays in zip(segments, results, strict=True):
+        returns, costs = episode_totals(arrays)
+        records.append(
+            {
+                **asdict(segment),
+                "start": first,
+                "stop": first + segment.episodes,
+                "mean_return": float(returns.mean()),
+                "mean_cost": float(costs.mean()),
+            }
+        )
+        first += segment.episodes
+        parts.append(arrays)
+    return records, parts
 
 
 def segment_pools(metadata: dict) -> dict[str, torch.Tensor]:

@@ -107,19 +107,7 @@ def rollout(
         torch.manual_seed(derive_seed(seed, 4))
         while active:
             batch = np.stack([obs[i] for i in active]).astype(np.float32)
-            if policy is None:
-                low, high = envs[0].action_space.low, envs[0].action_space.high
-                actions = rng.uniform(low, high, size=(len(active), *low.shape)).astype(np.float32)
-            else:
-                td = TensorDict(
-                    {"observation": torch.from_numpy(batch)}, batch_size=[len(active)], device=device
-                )
-                # an unbounded (Normal) policy's action is clipped to the bounds, and stored clipped
-                space = envs[0].action_space
-                actions = policy(td)["action"].cpu().numpy()
-                # a NaN action makes MuJoCo reset the simulation: its episodes would look costless
-                check_finite("the policy's action", actions, f"{env_id} rollout", "the policy diverged")
-                actions = np.clip(actions, space.low, space.high)
+            actions = _actions(policy, batch, envs[0].action_space, rng, device, env_id)
             still = []
             for j, i in enumerate(active):
                 seen = None if record is None else record(envs[i])
@@ -155,6 +143,23 @@ def rollout(
         bar.close()
     for env in envs:
         env.close()
+    return _as_arrays(finished, record is not None, components is not None)
+
+
+def _actions(policy, batch: np.ndarray, space, rng: np.random.Generator, device, env_id: str) -> np.ndarray:
+    """One step's actions for the observations ``batch``: ``policy``'s (clipped to ``space``'s bounds, where an
+    unbounded Normal policy can leave them, and stored clipped), or uniform random ones from ``rng`` without a
+    policy. A non-finite action is refused: MuJoCo would reset the simulation and the episode look costless."""
+    if policy is None:
+        return rng.uniform(space.low, space.high, size=(len(batch), *space.low.shape)).astype(np.float32)
+    td = TensorDict({"observation": torch.from_numpy(batch)}, batch_size=[len(batch)], device=device)
+    actions = policy(td)["action"].cpu().numpy()
+    check_finite("the policy's action", actions, f"{env_id} rollout", "the policy diverged")
+    return np.clip(actions, space.low, space.high)
+
+
+def _as_arrays(finished: list[list[tuple]], recorded: bool, components: bool) -> dict[str, np.ndarray]:
+    """The DSRL arrays of the ``finished`` episodes (lists of step tuples), back to back."""
     flat = [s for episode in finished for s in episode]
     columns = list(zip(*flat, strict=True))
     return {
@@ -165,14 +170,14 @@ def rollout(
         "costs": np.asarray(columns[4], dtype=np.float32),
         "terminals": np.asarray(columns[5], dtype=bool),
         "timeouts": np.asarray(columns[6], dtype=bool),
-        **({} if record is None else {"recorded": np.stack(columns[7])}),
+        **({"recorded": np.stack(columns[7])} if recorded else {}),
         **(
-            {}
-            if components is None
-            else {
+            {
                 f"{COMPONENT_PREFIX}{k}": np.asarray([p[k] for p in columns[8]], np.float32)
                 for k in columns[8][0]
             }
+            if components
+            else {}
         ),
     }
 
