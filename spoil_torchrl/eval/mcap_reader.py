@@ -158,6 +158,42 @@ def read_rollouts(
         See :class:`~spoil_torchrl.eval.RolloutWriter`.
     """
     path = Path(path)
+    _check_magic(path)
+    found = _EpisodeAssembly(path, step_topic, episode_topic)
+    metadata: dict[str, str] = {}
+    finished, stop_reason = False, None
+    for record in _records(path):
+        if isinstance(record, tuple):
+            stop_reason = record[1]
+            break
+        if isinstance(record, Channel) and record.topic in (step_topic, episode_topic):
+            found.add_channel(record)
+        elif isinstance(record, Message) and record.channel_id in found.channels:
+            found.add_message(record)
+        elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+            metadata.update(record.metadata)
+        elif isinstance(record, Footer):
+            finished = True
+    skipped = found.drop_incomplete(finished)
+
+    try:
+        default_threshold = float(metadata.get("cost_threshold", "nan"))
+    except ValueError:
+        default_threshold = math.nan
+    keys = sorted(found.packed)
+    episodes = [found.packed[k] for k in keys]
+    return Rollouts(
+        steps=_steps_tensordict(path, keys, episodes),
+        episodes=_episodes_tensordict(keys, [found.summaries[k] for k in keys], episodes, default_threshold),
+        metadata=metadata,
+        finished=finished,
+        skipped=skipped,
+        stop_reason=None if finished else stop_reason or "the file ends before the MCAP footer",
+    )
+
+
+def _check_magic(path: Path) -> None:
+    """Refuse a missing file, or one that does not start with the MCAP magic bytes."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such rollout file")
     with open(path, "rb") as f:
@@ -169,87 +205,84 @@ def read_rollouts(
             + ")"
         )
 
-    channels: dict[int, str] = {}  # channel id -> "step" | "episode"
-    pending: dict[tuple[int, int], dict[int, dict]] = {}  # step messages of episodes not complete yet
-    summaries: dict[tuple[int, int], dict] = {}
-    packed: dict[tuple[int, int], _Episode] = {}
-    inconsistent: dict[tuple[int, int], str] = {}
-    metadata: dict[str, str] = {}
-    finished, stop_reason = False, None
-    for record in _records(path):
-        if isinstance(record, tuple):
-            stop_reason = record[1]
-            break
-        if isinstance(record, Channel) and record.topic in (step_topic, episode_topic):
-            if record.message_encoding != MessageEncoding.JSON:
-                raise RolloutFileError(
-                    f"{path}: channel {record.topic} has message encoding {record.message_encoding!r}, "
-                    "expected 'json'"
-                )
-            channels[record.id] = "step" if record.topic == step_topic else "episode"
-        elif isinstance(record, Message) and record.channel_id in channels:
-            kind = channels[record.channel_id]
-            where = f"{path}: {step_topic if kind == 'step' else episode_topic} message at log time {record.log_time}"
-            try:
-                message = json.loads(record.data)
-            except (json.JSONDecodeError, UnicodeDecodeError) as err:
-                raise RolloutFileError(f"{where}: not valid JSON ({err})") from err
-            _validate(message, STEP_SCHEMA if kind == "step" else EPISODE_SCHEMA, where)
-            message[_LOG_TIME] = record.log_time
-            key = (int(message.get("evaluation_step", 0)), int(message["episode"]))
-            if kind == "step":
-                t = message["step"]
-                if key in packed:
-                    inconsistent[key] = f"step {t} arrived after all {len(packed[key])} steps of its summary"
-                elif t in pending.get(key, {}):
-                    inconsistent[key] = f"step {t} appears twice"
-                pending.setdefault(key, {})[t] = message
-            elif key in summaries:
-                raise RolloutFileError(f"{where}: episode {key[1]} has two summaries")
-            else:
-                summaries[key] = message
-            steps = pending.get(key, {})
-            n = summaries[key]["length"] if key in summaries else -1
-            if len(steps) == n and max(steps, default=-1) == n - 1 and key not in inconsistent:
-                packed[key] = _pack(path, [steps[t] for t in sorted(steps)], summaries[key]["length"])
-                pending.pop(key, None)
-        elif isinstance(record, Metadata) and record.name == METADATA_NAME:
-            metadata.update(record.metadata)
-        elif isinstance(record, Footer):
-            finished = True
 
-    no_summary = sorted(set(pending) - set(summaries))  # episodes in progress when the writer stopped
-    skipped = len(no_summary)
-    for key in sorted(summaries):
-        n, have = summaries[key]["length"], sorted(pending.get(key, {}))
-        if key in inconsistent or (key not in packed and have != list(range(n))):
-            problem = f"{path}: episode {key[1]} (evaluation step {key[0]}): " + inconsistent.get(
-                key, f"a summary of length {n} but steps {have[:10]}{'...' if len(have) > 10 else ''}"
+class _EpisodeAssembly:
+    """The step and episode messages of a rollout file, gathered into episodes as they arrive (in any order):
+    an episode is packed into tensors once its summary and all its steps are in."""
+
+    def __init__(self, path: Path, step_topic: str, episode_topic: str) -> None:
+        self.path, self.step_topic, self.episode_topic = path, step_topic, episode_topic
+        self.channels: dict[int, str] = {}  # channel id -> "step" | "episode"
+        self.pending: dict[
+            tuple[int, int], dict[int, dict]
+        ] = {}  # step messages of episodes not complete yet
+        self.summaries: dict[tuple[int, int], dict] = {}
+        self.packed: dict[tuple[int, int], _Episode] = {}
+        self.inconsistent: dict[tuple[int, int], str] = {}
+
+    def add_channel(self, record: Channel) -> None:
+        if record.message_encoding != MessageEncoding.JSON:
+            raise RolloutFileError(
+                f"{self.path}: channel {record.topic} has message encoding {record.message_encoding!r}, "
+                "expected 'json'"
             )
-            if finished:
-                raise RolloutFileError(problem)
-            warnings.warn(problem + " (skipped)", stacklevel=2)
-            packed.pop(key, None)
-            skipped += 1
-    if no_summary:
-        warnings.warn(
-            f"{path}: skipped {len(no_summary)} incomplete episode(s) (steps without a summary)", stacklevel=2
-        )
+        self.channels[record.id] = "step" if record.topic == self.step_topic else "episode"
 
-    try:
-        default_threshold = float(metadata.get("cost_threshold", "nan"))
-    except ValueError:
-        default_threshold = math.nan
-    keys = sorted(packed)
-    episodes = [packed[k] for k in keys]
-    return Rollouts(
-        steps=_steps_tensordict(path, keys, episodes),
-        episodes=_episodes_tensordict(keys, [summaries[k] for k in keys], episodes, default_threshold),
-        metadata=metadata,
-        finished=finished,
-        skipped=skipped,
-        stop_reason=None if finished else stop_reason or "the file ends before the MCAP footer",
-    )
+    def add_message(self, record: Message) -> None:
+        kind = self.channels[record.channel_id]
+        topic = self.step_topic if kind == "step" else self.episode_topic
+        where = f"{self.path}: {topic} message at log time {record.log_time}"
+        try:
+            message = json.loads(record.data)
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise RolloutFileError(f"{where}: not valid JSON ({err})") from err
+        _validate(message, STEP_SCHEMA if kind == "step" else EPISODE_SCHEMA, where)
+        message[_LOG_TIME] = record.log_time
+        key = (int(message.get("evaluation_step", 0)), int(message["episode"]))
+        if kind == "step":
+            t = message["step"]
+            if key in self.packed:
+                self.inconsistent[key] = (
+                    f"step {t} arrived after all {len(self.packed[key])} steps of its summary"
+                )
+            elif t in self.pending.get(key, {}):
+                self.inconsistent[key] = f"step {t} appears twice"
+            self.pending.setdefault(key, {})[t] = message
+        elif key in self.summaries:
+            raise RolloutFileError(f"{where}: episode {key[1]} has two summaries")
+        else:
+            self.summaries[key] = message
+        steps = self.pending.get(key, {})
+        n = self.summaries[key]["length"] if key in self.summaries else -1
+        if len(steps) == n and max(steps, default=-1) == n - 1 and key not in self.inconsistent:
+            self.packed[key] = _pack(self.path, [steps[t] for t in sorted(steps)], n)
+            self.pending.pop(key, None)
+
+    def drop_incomplete(self, finished: bool) -> int:
+        """Drop the episodes whose steps do not match their summary (an error in a ``finished`` file, else a
+        warning) and count them with those that never got a summary."""
+        no_summary = sorted(set(self.pending) - set(self.summaries))  # in progress when the writer stopped
+        skipped = len(no_summary)
+        for key in sorted(self.summaries):
+            n, have = self.summaries[key]["length"], sorted(self.pending.get(key, {}))
+            if key in self.inconsistent or (key not in self.packed and have != list(range(n))):
+                problem = (
+                    f"{self.path}: episode {key[1]} (evaluation step {key[0]}): "
+                    + self.inconsistent.get(
+                        key, f"a summary of length {n} but steps {have[:10]}{'...' if len(have) > 10 else ''}"
+                    )
+                )
+                if finished:
+                    raise RolloutFileError(problem)
+                warnings.warn(problem + " (skipped)", stacklevel=3)
+                self.packed.pop(key, None)
+                skipped += 1
+        if no_summary:
+            warnings.warn(
+                f"{self.path}: skipped {len(no_summary)} incomplete episode(s) (steps without a summary)",
+                stacklevel=3,
+            )
+        return skipped
 
 
 @dataclass
