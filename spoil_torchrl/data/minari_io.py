@@ -171,30 +171,7 @@ def write_minari(
     if episode_ids != list(range(len(episode_ids))):
         # a subset: the segments' episode ranges no longer hold; each episode keeps its policy_type instead
         metadata.pop("segments", None)
-    buffers = []
-    for k, rows in enumerate(parts):
-        step = episodes[rows]
-        obs = step["observation"].numpy()
-        next_obs = step["next", "observation"].numpy()
-        cost = step["next", "cost"].reshape(-1).numpy()
-        infos = {"cost": np.concatenate([np.zeros(1, cost.dtype), cost])}
-        parts = step.get(("next", CONSTRAINTS_KEY), None)
-        for name in [] if parts is None else parts.keys():
-            part = parts[name].reshape(-1).numpy()
-            infos[COMPONENT_PREFIX + name] = np.concatenate([np.zeros(1, part.dtype), part])
-        if not np.array_equal(next_obs[:-1], obs[1:]):
-            infos["next_observation"] = np.concatenate([np.zeros_like(next_obs[:1]), next_obs])
-        buffers.append(
-            EpisodeBuffer(
-                id=k,
-                observations=np.concatenate([obs, next_obs[-1:]]),
-                actions=step["action"].numpy(),
-                rewards=step["next", "reward"].reshape(-1).numpy(),
-                terminations=step["next", "terminated"].reshape(-1).numpy(),
-                truncations=step["next", "truncated"].reshape(-1).numpy(),
-                infos=infos,
-            )
-        )
+    buffers = [_episode_buffer(EpisodeBuffer, k, episodes[rows]) for k, rows in enumerate(parts)]
     info = {
         "algorithm_name": str(metadata.get("name", "spoil_torchrl export")),
         "description": description or str(metadata.get("description", "exported by spoil_torchrl")),
@@ -207,13 +184,7 @@ def write_minari(
         # task is recorded in our metadata (env_id) and as eval_env where gymnasium knows it
         warnings.filterwarnings("ignore", category=UserWarning, module="minari.utils")
         dataset = _create(minari, dataset_id, buffers, episodes, metadata, info)
-    role_sets = {name: set(torch.as_tensor(ids).tolist()) for name, ids in (roles or {}).items()}
-    per_episode = []
-    for e in episode_ids:
-        entry = {ROLE_PREFIX + name: e in ids for name, ids in role_sets.items()}
-        if labels[e] is not None:
-            entry["policy_type"] = labels[e]
-        per_episode.append(entry)
+    per_episode = _exported_episode_metadata(episode_ids, roles or {}, labels)
     if any(per_episode):
         dataset.storage.update_episode_metadata(per_episode, range(len(per_episode)))
     extra = {METADATA_KEY: metadata}
@@ -221,6 +192,45 @@ def write_minari(
         extra.update(ref_min_score=float(return_range[0]), ref_max_score=float(return_range[1]))
     dataset.storage.update_metadata(extra)
     return dataset
+
+
+def _episode_buffer(buffer_class, k: int, step: TensorDict):
+    """Minari's episode buffer ``k`` for one episode's TED transitions ``step``: observations with the last next
+    observation appended, the per-step costs (and each constraint's) as ``infos`` with a leading 0 for the reset,
+    and the next observations themselves only where they differ from the following observations."""
+    obs = step["observation"].numpy()
+    next_obs = step["next", "observation"].numpy()
+    cost = step["next", "cost"].reshape(-1).numpy()
+    infos = {"cost": np.concatenate([np.zeros(1, cost.dtype), cost])}
+    constraints = step.get(("next", CONSTRAINTS_KEY), None)
+    for name in [] if constraints is None else constraints.keys():
+        part = constraints[name].reshape(-1).numpy()
+        infos[COMPONENT_PREFIX + name] = np.concatenate([np.zeros(1, part.dtype), part])
+    if not np.array_equal(next_obs[:-1], obs[1:]):
+        infos["next_observation"] = np.concatenate([np.zeros_like(next_obs[:1]), next_obs])
+    return buffer_class(
+        id=k,
+        observations=np.concatenate([obs, next_obs[-1:]]),
+        actions=step["action"].numpy(),
+        rewards=step["next", "reward"].reshape(-1).numpy(),
+        terminations=step["next", "terminated"].reshape(-1).numpy(),
+        truncations=step["next", "truncated"].reshape(-1).numpy(),
+        infos=infos,
+    )
+
+
+def _exported_episode_metadata(
+    episode_ids: list[int], roles: Mapping[str, torch.Tensor], labels: list[str | None]
+) -> list[dict]:
+    """Each exported episode's metadata: a ``role_<name>`` flag per role, and its ``policy_type`` if known."""
+    role_sets = {name: set(torch.as_tensor(ids).tolist()) for name, ids in roles.items()}
+    per_episode = []
+    for e in episode_ids:
+        entry = {ROLE_PREFIX + name: e in ids for name, ids in role_sets.items()}
+        if labels[e] is not None:
+            entry["policy_type"] = labels[e]
+        per_episode.append(entry)
+    return per_episode
 
 
 def _env_spec(env_id: str | None):
