@@ -5,7 +5,7 @@
 
 ``--figure`` reads the cells of a paper experiment (``experiment=...``) instead: per level and method the mean ±
 s.e. over seeds, averaged over the tasks present and per task, the aggregate statistics
-(:func:`spoil_torchrl.runs.experiments.experiment_statistics`) and the figure
+(:func:`spoil_torchrl.eval.experiment_tables.experiment_statistics`) and the figure
 (:func:`spoil_torchrl.eval.figures.plot_levels`).
 
 Every ``results.json`` under the given folders with ``status == "finished"`` counts. Per dataset and algorithm,
@@ -301,13 +301,9 @@ def write_outputs(text: str, out: Path | None, figures: list[tuple[Path | None, 
 
 def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """``--figure``: a paper experiment's tables and statistics (printed, and into ``--out``) and figure."""
+    from spoil_torchrl.eval.experiment_tables import experiment_markdown, experiment_statistics, figure_panels
     from spoil_torchrl.eval.figures import plot_levels
-    from spoil_torchrl.runs.experiments import (
-        experiment_markdown,
-        experiment_statistics,
-        figure_panels,
-        load_experiment,
-    )
+    from spoil_torchrl.runs.experiments import load_experiment
 
     if args.curves or args.latest:
         parser.error("--curves and --latest are not available with --figure")

@@ -6,13 +6,13 @@ import json
 
 import pytest
 
-from spoil_torchrl.runs.experiments import (
+from spoil_torchrl.eval.experiment_tables import (
     experiment_markdown,
     level_summary,
-    load_experiment,
     score_matrices,
     task_average,
 )
+from spoil_torchrl.runs.experiments import load_experiment
 
 
 def _cell(root, dataset, value, algo, seed, ret, cost, *, name="fig4c", level="dataset.performance", **extra):
@@ -113,7 +113,7 @@ def test_a_setting_older_runs_did_not_write_reads_as_their_value(tmp_path):
 
 def test_statistics_name_the_improvement_over_each_baseline(tmp_path):
     pytest.importorskip("rliable")
-    from spoil_torchrl.runs.experiments import experiment_statistics
+    from spoil_torchrl.eval.experiment_tables import experiment_statistics
 
     _grid(tmp_path)
     text = experiment_statistics(load_experiment([tmp_path]), reps=50)
@@ -125,7 +125,7 @@ def test_statistics_name_the_improvement_over_each_baseline(tmp_path):
 def test_a_sweep_still_running_reports_what_it_has(tmp_path):
     """Task b has no cell at level 0.75 yet: its tables show "-" there and the statistics skip that level."""
     pytest.importorskip("rliable")
-    from spoil_torchrl.runs.experiments import experiment_statistics
+    from spoil_torchrl.eval.experiment_tables import experiment_statistics
 
     for dataset, value in (("a", 0.25), ("a", 0.75), ("b", 0.25)):
         for seed in (0, 1):
