@@ -170,7 +170,8 @@ def collect(
     references = reference_jobs(env_id, episodes=reference_episodes, seed=seed)
     jobs += references.values()
     results = _run_all(jobs, f"collecting {env_id}", task.episode_length, progress, workers)
-    records, parts = _segment_records(segments, results[: len(segments)])
+    parts = results[: len(segments)]
+    records = _segment_records(segments, parts)
     references = dict.fromkeys(reference_policies(env_id)) | {
         name: float(episode_totals(arrays)[0].mean())
         for name, arrays in zip(references, results[len(segments) :], strict=True)
@@ -216,12 +217,11 @@ def _run_all(
     return results
 
 
-def _segment_records(
-    segments: Sequence[Segment], results: list[dict[str, np.ndarray]]
-) -> tuple[list[dict], list[dict[str, np.ndarray]]]:
-    """Each segment's metadata record (its episode range in the file, mean return and cost) and its arrays."""
-    records, parts, first = [], [], 0
-    for segment, arrays in zip(segments, results, strict=True):
+def _segment_records(segments: Sequence[Segment], parts: list[dict[str, np.ndarray]]) -> list[dict]:
+    """Each segment's metadata record: its episode range in the file, mean return and cost (``parts``: its
+    arrays)."""
+    records, first = [], 0
+    for segment, arrays in zip(segments, parts, strict=True):
         returns, costs = episode_totals(arrays)
         records.append(
             {
@@ -233,8 +233,7 @@ def _segment_records(
             }
         )
         first += segment.episodes
-        parts.append(arrays)
-    return records, parts
+    return records
 
 
 def segment_pools(metadata: dict) -> dict[str, torch.Tensor]:
