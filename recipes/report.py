@@ -2,6 +2,12 @@
 
     python recipes/report.py runs/final --out docs/results.md --plot docs/tradeoff.png --curves docs/curves.png
     python recipes/report.py --figure docs/results/fig4c --out docs/experiments/fig4c.md --plot docs/experiments/fig4c.png
+    python recipes/report.py --keep docs/results/fig4c runs/experiments/fig4c
+
+``--keep DEST`` copies each finished run's ``results.json`` and ``config.yaml`` under the folders into ``DEST``
+(:func:`spoil_torchrl.runs.experiments.keep_finished`), at its path relative to its folder: what the tables
+and figures read, to commit or share while a sweep goes on. Runs not finished are listed; one already kept the
+same is left; one kept with other contents is refused (exit status 1), never overwritten.
 
 ``--figure`` reads the cells of a paper experiment (``experiment=...``) instead: per level and method the mean ±
 s.e. over seeds, averaged over the tasks present and per task, the aggregate statistics
@@ -255,7 +261,16 @@ def main() -> None:
         help="with --figure: the cells of one dataset may come from different files of it (a generated "
         "dataset made again on another CPU); the tables say how many runs each file has",
     )
+    parser.add_argument(
+        "--keep",
+        type=Path,
+        metavar="DEST",
+        help="copy each finished run's results.json and config.yaml into DEST (at its path relative to its "
+        "folder), instead of reporting",
+    )
     args = parser.parse_args()
+    if args.keep is not None:
+        return keep_report(parser, args)
     for flag, path in (("--out", args.out), ("--plot", args.plot), ("--curves", args.curves)):
         if path is not None and path.is_dir():
             parser.error(f"{flag} {path} is a directory; give the file to write")
@@ -297,6 +312,33 @@ def write_outputs(text: str, out: Path | None, figures: list[tuple[Path | None, 
                 draw(path)
     except OSError as err:
         raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
+
+
+def keep_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--keep DEST``: the finished runs' small files copied into ``DEST``, and what was not."""
+    from spoil_torchrl.runs.experiments import keep_finished
+
+    others = ("out", "plot", "curves", "latest", "figure", "experiment", "mixed_files")
+    given = [f"--{flag.replace('_', '-')}" for flag in others if getattr(args, flag) not in (None, False)]
+    if given:
+        parser.error(f"--keep copies runs and reports nothing: drop {', '.join(given)}")
+    try:
+        kept = keep_finished(args.folders, args.keep)
+    except (FileNotFoundError, ValueError) as error:
+        raise SystemExit(f"error: {error}") from None
+    except OSError as err:
+        raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
+    for path, reason in kept.skipped:
+        print(f"skipped {path.parent}: {reason}", file=sys.stderr)
+    for relative in kept.copied:
+        print(f"kept {relative}")
+    print(f"{len(kept.copied)} runs kept in {args.keep}, {len(kept.already)} already there")
+    if kept.refused:
+        raise SystemExit(
+            f"error: {args.keep} keeps other files for {len(kept.refused)} runs (started over, or edited): "
+            + ", ".join(kept.refused)
+            + "; left as they were"
+        )
 
 
 def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

@@ -1,5 +1,6 @@
 """A paper experiment's sweep through the real command: every cell its own run directory, a second start
-passes over the finished cells and resumes a killed one, and ``spoil-report --figure`` draws its figure."""
+passes over the finished cells and resumes a killed one, ``spoil-report --keep`` keeps the finished cells' small
+files apart and ``spoil-report --figure`` draws the figure from them."""
 
 from __future__ import annotations
 
@@ -83,6 +84,15 @@ def test_an_experiment_sweep_names_skips_resumes_and_draws_its_cells(tmp_path, t
         if r["status"] == "finished"
     }
 
+    # the finished cells' small files kept apart while the sweep is unfinished; the killed cell is not among them
+    kept_dir = tmp_path / "kept"
+    keep = run_command(["recipes/report.py", "--keep", kept_dir, sweep_dir])
+    assert keep.returncode == 0, keep.stderr[-3000:]
+    assert "2 runs kept" in keep.stdout and f"{killed[0]}: killed" in keep.stderr
+    assert sorted(p.relative_to(kept_dir) for p in kept_dir.rglob("*") if p.is_file()) == sorted(
+        Path(d) / name for d in finished_files for name in ("config.yaml", "results.json")
+    )
+
     # the same command again: the finished cells are passed over untouched, the killed one resumed, the last run
     again = run_command(command[1:])  # in this process: the sweep's jobs one after the other
     assert again.returncode == 0, again.stderr[-3000:]
@@ -103,12 +113,19 @@ def test_an_experiment_sweep_names_skips_resumes_and_draws_its_cells(tmp_path, t
     third = run_command(command[1:])
     assert third.returncode == 0 and third.stdout.count("finished already; nothing to do") == 4
 
-    # the figure and its tables from the run directories alone
+    # the rest kept too; the first two are there already, unchanged
+    keep = run_command(["recipes/report.py", "--keep", kept_dir, sweep_dir])
+    assert keep.returncode == 0 and "2 runs kept" in keep.stdout and "2 already there" in keep.stdout
+    for d in CELLS:
+        for name in ("config.yaml", "results.json"):
+            assert (kept_dir / d / name).read_bytes() == (sweep_dir / d / name).read_bytes()
+
+    # the figure and its tables from the kept files alone
     report = run_command(
         [
             "recipes/report.py",
             "--figure",
-            sweep_dir,
+            kept_dir,
             "--out",
             tmp_path / "fig4c.md",
             "--plot",
