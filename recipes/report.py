@@ -11,7 +11,8 @@ same is left; one kept with other contents is refused (exit status 1), never ove
 
 ``--figure`` reads the cells of a paper experiment (``experiment=...``) instead: per level and method the mean ±
 s.e. over seeds, averaged over the tasks present and per task, the aggregate statistics
-(:func:`spoil_torchrl.eval.experiment_tables.experiment_statistics`) and the figure
+(:func:`spoil_torchrl.eval.experiment_tables.experiment_statistics`), the DICE diagnostics of the weighted
+methods per level (:func:`~spoil_torchrl.eval.experiment_tables.diagnostics_markdown`) and the figure
 (:func:`spoil_torchrl.eval.figures.plot_levels`).
 
 Every ``results.json`` under the given folders with ``status == "finished"`` counts. Per dataset and algorithm,
@@ -343,7 +344,12 @@ def keep_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
 
 def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """``--figure``: a paper experiment's tables and statistics (printed, and into ``--out``) and figure."""
-    from spoil_torchrl.eval.experiment_tables import experiment_markdown, experiment_statistics, figure_panels
+    from spoil_torchrl.eval.experiment_tables import (
+        diagnostics_markdown,
+        experiment_markdown,
+        experiment_statistics,
+        figure_panels,
+    )
     from spoil_torchrl.eval.figures import plot_levels
     from spoil_torchrl.runs.experiments import load_experiment
 
@@ -371,7 +377,8 @@ def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
     draw = lambda path: plot_levels(  # noqa: E731
         figure_panels(experiment), experiment.levels, path, level_name=experiment.level
     )
-    write_outputs(experiment_markdown(experiment) + "\n\n" + statistics, args.out, [(args.plot, draw)])
+    parts = [experiment_markdown(experiment), statistics, diagnostics_markdown(experiment)]
+    write_outputs("\n\n".join(part for part in parts if part), args.out, [(args.plot, draw)])
 
 
 if __name__ == "__main__":

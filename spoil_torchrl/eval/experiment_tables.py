@@ -4,7 +4,8 @@ An :class:`Experiment` holds the finished cells of one experiment (read from run
 :func:`~spoil_torchrl.runs.experiments.load_experiment`). :func:`level_summary` gives per task, level and method
 the mean and standard error over seeds of the normalised feasible return and cost, and :func:`task_average` the
 same averaged over the tasks present, as the paper's Fig. 4 averages its six tasks. :func:`experiment_markdown`
-writes both as tables, one column per level, and :func:`experiment_statistics` adds the aggregate statistics of
+writes both as tables, one column per level, :func:`diagnostics_markdown` the DICE diagnostics of the weighted
+methods per level, and :func:`experiment_statistics` adds the aggregate statistics of
 few-seed results (interquartile mean with stratified-bootstrap intervals over seeds and tasks, the probability
 that SpoilDICE improves on each baseline; :mod:`spoil_torchrl.eval.aggregate`). ``spoil-report --figure`` draws
 and writes them.
@@ -162,6 +163,73 @@ def experiment_markdown(experiment: Experiment) -> str:
         "average (normalised cost <= 1)."
     )
     return "\n".join(lines)
+
+
+#: The DICE diagnostics :func:`diagnostics_markdown` tabulates: (row name, path into ``results.json``'s
+#: ``dice_diagnostics``). A row a method's runs do not record is left out of its table.
+DIAGNOSTICS = (
+    ("support: share of D_U kept", ("support", "kept")),
+    ("support: share of D_U's safe-high transitions kept", ("support", "kept_by_group", "safe-high")),
+    ("support: share of the kept transitions with a cost", ("support", "costly_among_kept")),
+    ("weight mass on transitions with a cost", ("weight_share", "cost>0", "weight")),
+    ("nu's share of the advantage's variance", ("variance_share", "bellman")),
+    ("effective sample size (share of the weighted set)", ("effective_sample_size",)),
+)
+
+
+def _diagnostic(results: dict, path: tuple[str, ...]) -> float | None:
+    value = results.get("dice_diagnostics")
+    for key in path:
+        value = value.get(key) if isinstance(value, dict) else None
+    return float(value) if isinstance(value, int | float) else None
+
+
+def diagnostics_markdown(experiment: Experiment) -> str:
+    """The DICE diagnostics of the experiment's weighted methods as markdown (``""`` when no run has any): per
+    task and method one table, a row per diagnostic of :data:`DIAGNOSTICS` and a column per level, each cell the
+    mean over seeds in percent with the seeds' range. They say why a method's numbers move with the level: how
+    much of D_U the support cut keeps and how precisely, where the weights put their mass, and how much of
+    the weights' exponent is nu's.
+
+    Example:
+        >>> weights = {"role": "unlabeled", "support": {"kept": 0.4}, "effective_sample_size": 0.02}
+        >>> run = {"seed": 0, "dice_diagnostics": weights}
+        >>> print(diagnostics_markdown(Experiment("fig", "n", {("pc1", 2, "spoildice"): [run]})))
+        **pc1, SpoilDICE: DICE diagnostics, weights on unlabeled** (percent, mean over seeds [range])
+        <BLANKLINE>
+        | diagnostic | 2 |
+        |---|---|
+        | support: share of D_U kept | 40.0 [40.0, 40.0] |
+        | effective sample size (share of the weighted set) | 2.0 [2.0, 2.0] |
+    """
+    levels, lines = experiment.levels, []
+    head = [str(v) if experiment.level is not None else "value" for v in levels]
+    for dataset in experiment.datasets:
+        for algo in experiment.algos:
+            groups = [experiment.cells.get((dataset, value, algo), []) for value in levels]
+            rows = []
+            for name, path in DIAGNOSTICS:
+                cells = []
+                for group in groups:
+                    values = [v for v in (_diagnostic(r, path) for r in group) if v is not None]
+                    cells.append(
+                        f"{100 * sum(values) / len(values):.1f} [{100 * min(values):.1f}, {100 * max(values):.1f}]"
+                        if values
+                        else "-"
+                    )
+                if any(cell != "-" for cell in cells):
+                    rows.append(f"| {name} | " + " | ".join(cells) + " |")
+            if rows:
+                role = next(
+                    r["dice_diagnostics"].get("role") for g in groups for r in g if r.get("dice_diagnostics")
+                )
+                title = (
+                    f"**{dataset}, {ALGORITHM_NAMES.get(algo, algo)}: DICE diagnostics, weights on {role}**"
+                )
+                lines += [f"{title} (percent, mean over seeds [range])", ""]
+                lines += ["| diagnostic | " + " | ".join(head) + " |", "|---" * (len(levels) + 1) + "|"]
+                lines += [*rows, ""]
+    return "\n".join(lines).rstrip("\n")
 
 
 def score_matrices(experiment: Experiment, metric: str, level=None, *, over_levels: bool = False) -> dict:

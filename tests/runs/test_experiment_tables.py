@@ -13,6 +13,7 @@ from spoil_torchrl.eval.experiment_tables import (
     task_average,
 )
 from spoil_torchrl.runs.experiments import load_experiment
+from tests.cli import run_command
 
 
 def _cell(root, dataset, value, algo, seed, ret, cost, *, name="fig4c", level="dataset.performance", **extra):
@@ -134,6 +135,35 @@ def test_a_sweep_still_running_reports_what_it_has(tmp_path):
     text = experiment_statistics(experiment, reps=20)
     assert "| SpoilDICE | 0.55 [0.50, 0.60] | - |" in text  # 0.75: no method has both tasks
     assert "| SpoilDICE | **0.55 ± 0.05** | - |" in experiment_markdown(experiment)  # the average over tasks
+
+
+def test_dice_diagnostics_are_tabulated_per_task_method_and_level(tmp_path):
+    """Mean over seeds in percent with the seeds' range; a level whose runs lack a diagnostic shows "-", a
+    method without weights (BC) has no table, and ``spoil-report --figure`` writes the tables."""
+    from spoil_torchrl.eval.experiment_tables import diagnostics_markdown
+
+    for value, kept in ((0.25, (0.10, 0.20)), (0.75, (0.40, 0.50))):
+        for seed in (0, 1):
+            weights = {
+                "role": "unlabeled",
+                "support": {"kept": kept[seed]} if value == 0.25 else {},
+                "weight_share": {"cost>0": {"weight": 0.01 * (seed + 1), "transitions": 0.2}},
+            }
+            _cell(tmp_path, "a", value, "spoildice", seed, 0.6, 0.2, dice_diagnostics=weights)
+            _cell(tmp_path, "a", value, "bc", seed, 0.3, 3.0, dice_diagnostics=None)
+    text = diagnostics_markdown(load_experiment([tmp_path]))
+    assert (
+        text.count("DICE diagnostics") == 1
+        and "**a, SpoilDICE: DICE diagnostics, weights on unlabeled**" in text
+    )
+    assert "| support: share of D_U kept | 15.0 [10.0, 20.0] | - |" in text
+    assert "| weight mass on transitions with a cost | 1.5 [1.0, 2.0] | 1.5 [1.0, 2.0] |" in text
+    assert "effective sample size" not in text  # recorded by no run
+    assert diagnostics_markdown(load_experiment([tmp_path / "a" / "performance0.25" / "bc"])) == ""
+
+    report = run_command(["recipes/report.py", "--figure", tmp_path, "--out", tmp_path / "fig.md"])
+    assert report.returncode == 0, report.stderr
+    assert "| support: share of D_U kept | 15.0 [10.0, 20.0] | - |" in (tmp_path / "fig.md").read_text()
 
 
 def test_cells_of_one_dataset_from_two_stacks_or_two_files_are_refused(tmp_path):
