@@ -5,7 +5,7 @@
     python recipes/report.py --keep docs/results/fig4c runs/experiments/fig4c
 
 ``--keep DEST`` copies each finished run's ``results.json`` and ``config.yaml`` under the folders into ``DEST``
-(:func:`spoil_torchrl.runs.experiments.keep_finished`), at its path relative to its folder: what the tables
+(:func:`spoil_torchrl.runs.keep.keep_finished`), at its path relative to its folder: what the tables
 and figures read, to commit or share while a sweep goes on. Runs not finished are listed; one already kept the
 same is left; one kept with other contents is refused (exit status 1), never overwritten.
 
@@ -317,7 +317,7 @@ def write_outputs(text: str, out: Path | None, figures: list[tuple[Path | None, 
 
 def keep_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """``--keep DEST``: the finished runs' small files copied into ``DEST``, and what was not."""
-    from spoil_torchrl.runs.experiments import keep_finished
+    from spoil_torchrl.runs.keep import keep_finished
 
     others = ("out", "plot", "curves", "latest", "figure", "experiment", "mixed_files")
     given = [f"--{flag.replace('_', '-')}" for flag in others if getattr(args, flag) not in (None, False)]
@@ -328,7 +328,7 @@ def keep_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
     except (FileNotFoundError, ValueError) as error:
         raise SystemExit(f"error: {error}") from None
     except OSError as err:
-        raise SystemExit(f"error: cannot write {err.filename}: {err.strerror}") from None
+        raise SystemExit(f"error: cannot copy {err.filename}: {err.strerror}") from None
     for path, reason in kept.skipped:
         print(f"skipped {path.parent}: {reason}", file=sys.stderr)
     for relative in kept.copied:
@@ -336,9 +336,8 @@ def keep_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
     print(f"{len(kept.copied)} runs kept in {args.keep}, {len(kept.already)} already there")
     if kept.refused:
         raise SystemExit(
-            f"error: {args.keep} keeps other files for {len(kept.refused)} runs (started over, or edited): "
-            + ", ".join(kept.refused)
-            + "; left as they were"
+            f"error: {args.keep} keeps other files for {len(kept.refused)} run(s) found now (started over, edited, "
+            "or two runs at one place): " + ", ".join(kept.refused) + "; left as they were"
         )
 
 

@@ -178,10 +178,12 @@ DIAGNOSTICS = (
 
 
 def _diagnostic(results: dict, path: tuple[str, ...]) -> float | None:
+    """The number at ``path`` in the run's ``dice_diagnostics`` (``None`` where it records none, or no number)."""
     value = results.get("dice_diagnostics")
     for key in path:
         value = value.get(key) if isinstance(value, dict) else None
-    return float(value) if isinstance(value, int | float) else None
+    number = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    return float(value) if number else None
 
 
 def diagnostics_markdown(experiment: Experiment) -> str:
@@ -220,12 +222,14 @@ def diagnostics_markdown(experiment: Experiment) -> str:
                 if any(cell != "-" for cell in cells):
                     rows.append(f"| {name} | " + " | ".join(cells) + " |")
             if rows:
-                role = next(
-                    r["dice_diagnostics"].get("role") for g in groups for r in g if r.get("dice_diagnostics")
-                )
-                title = (
-                    f"**{dataset}, {ALGORITHM_NAMES.get(algo, algo)}: DICE diagnostics, weights on {role}**"
-                )
+                roles = {
+                    str(r["dice_diagnostics"].get("role"))
+                    for g in groups
+                    for r in g
+                    if isinstance(r.get("dice_diagnostics"), dict)
+                }
+                title = f"**{dataset}, {ALGORITHM_NAMES.get(algo, algo)}: DICE diagnostics, weights on "
+                title += f"{' / '.join(sorted(roles))}**"
                 lines += [f"{title} (percent, mean over seeds [range])", ""]
                 lines += ["| diagnostic | " + " | ".join(head) + " |", "|---" * (len(levels) + 1) + "|"]
                 lines += [*rows, ""]

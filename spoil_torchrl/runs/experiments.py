@@ -1,4 +1,4 @@
-"""A paper experiment read back from its cells' run directories, and the finished runs' small files kept apart.
+"""A paper experiment read back from its cells' run directories.
 
 A run started by ``experiment=<name>`` (``configs/experiment/``) records its cell in ``results.json``
 (``experiment``: the experiment's name, the setting it varies and that setting's value). :func:`load_experiment`
@@ -6,8 +6,6 @@ collects the finished cells of one experiment from any folders into an
 :class:`~spoil_torchrl.eval.experiment_tables.Experiment`, refusing what would mix results that do not belong
 together (two runs of one cell and seed, two training budgets, two software stacks or data files of one
 dataset); :mod:`spoil_torchrl.eval.experiment_tables` makes its tables, figure panels and statistics.
-:func:`keep_finished` copies each finished run's ``results.json`` and ``config.yaml`` out of a sweep's folders
-(``spoil-report --keep``), all those reports need, to be committed or shared without checkpoints or rollouts.
 """
 
 from __future__ import annotations
@@ -15,11 +13,9 @@ from __future__ import annotations
 import json
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from spoil_torchrl.eval.experiment_tables import Experiment
-from spoil_torchrl.files import write_atomic
 from spoil_torchrl.runs.directory import run_status
 
 
@@ -77,73 +73,6 @@ def finished_results(folders: Sequence[str | Path], skipped: list) -> Iterator[t
                 skipped.append((path, status if error is None else f"{status} ({error})"))
                 continue
             yield path, results
-
-
-#: What :func:`keep_finished` copies of a finished run: what its tables and figures read, nothing else.
-KEPT_FILES = ("config.yaml", "results.json")
-
-
-@dataclass
-class Kept:
-    """What :func:`keep_finished` did: run folders (relative to ``dest``) copied now, found already kept the
-    same, and refused because a different copy is kept there; ``skipped`` lists the runs that did not finish."""
-
-    copied: list[str] = field(default_factory=list)
-    already: list[str] = field(default_factory=list)
-    refused: list[str] = field(default_factory=list)
-    skipped: list[tuple[Path, str]] = field(default_factory=list)
-
-
-def keep_finished(folders: Sequence[str | Path], dest: str | Path) -> Kept:
-    """Copy the ``results.json`` and ``config.yaml`` of every finished run under ``folders`` into ``dest``, each
-    at its path relative to the folder it was found in: what a table or figure of them needs, without
-    checkpoints, logs or rollouts (what a sweep's results are committed or shared as). A run still training,
-    killed or failed is skipped; one kept before with the same files is left as it is; one kept before with other
-    contents (a run started over, or a file edited) is refused, never overwritten. Each file is written
-    atomically, ``results.json`` last, so an interrupted copy is finished by the next call.
-
-    Raises:
-        FileNotFoundError: a folder does not exist.
-        ValueError: ``dest`` and a folder overlap (one inside the other).
-
-    Examples:
-        >>> import json, tempfile
-        >>> runs, kept = Path(tempfile.mkdtemp()), Path(tempfile.mkdtemp()) / "kept"
-        >>> cell = runs / "fig4b" / "bc" / "seed0"
-        >>> cell.mkdir(parents=True)
-        >>> _ = (cell / "config.yaml").write_text("seed: 0\\n")
-        >>> _ = (cell / "results.json").write_text(json.dumps({"status": "finished"}))
-        >>> keep_finished([runs], kept).copied
-        ['fig4b/bc/seed0']
-        >>> keep_finished([runs], kept).already
-        ['fig4b/bc/seed0']
-    """
-    dest = Path(dest).resolve()
-    for folder in map(Path, folders):
-        if folder.exists() and (
-            dest.is_relative_to(folder.resolve()) or folder.resolve().is_relative_to(dest)
-        ):
-            raise ValueError(
-                f"{dest} and {folder} overlap; keep the runs in a folder outside the ones searched"
-            )
-    kept = Kept()
-    for folder in map(Path, folders):
-        for path, _ in finished_results([folder], kept.skipped):
-            relative = path.parent.relative_to(folder)
-            sources = {name: path.parent / name for name in KEPT_FILES if (path.parent / name).is_file()}
-            contents = {name: source.read_bytes() for name, source in sources.items()}
-            target = dest / relative
-            if (target / "results.json").is_file():
-                same = all(
-                    (target / name).is_file() and (target / name).read_bytes() == data
-                    for name, data in contents.items()
-                )
-                (kept.already if same else kept.refused).append(str(relative))
-                continue
-            for name in sorted(contents, key=lambda name: name == "results.json"):
-                write_atomic(target / name, contents[name])
-            kept.copied.append(str(relative))
-    return kept
 
 
 def load_experiment(

@@ -142,28 +142,27 @@ def test_dice_diagnostics_are_tabulated_per_task_method_and_level(tmp_path):
     method without weights (BC) has no table, and ``spoil-report --figure`` writes the tables."""
     from spoil_torchrl.eval.experiment_tables import diagnostics_markdown
 
-    for value, kept in ((0.25, (0.10, 0.20)), (0.75, (0.40, 0.50))):
-        for seed in (0, 1):
+    for value in (0.25, 0.75):
+        for seed, kept in enumerate((0.10, 0.15, 0.50)):  # mean 25, not the range's midpoint 30
             weights = {
                 "role": "unlabeled",
-                "support": {"kept": kept[seed]} if value == 0.25 else {},
+                "support": {"kept": kept} if value == 0.25 else {},
                 "weight_share": {"cost>0": {"weight": 0.01 * (seed + 1), "transitions": 0.2}},
+                "effective_sample_size": float("nan") if value == 0.25 else True,  # no numbers: left out
             }
             _cell(tmp_path, "a", value, "spoildice", seed, 0.6, 0.2, dice_diagnostics=weights)
             _cell(tmp_path, "a", value, "bc", seed, 0.3, 3.0, dice_diagnostics=None)
     text = diagnostics_markdown(load_experiment([tmp_path]))
-    assert (
-        text.count("DICE diagnostics") == 1
-        and "**a, SpoilDICE: DICE diagnostics, weights on unlabeled**" in text
-    )
-    assert "| support: share of D_U kept | 15.0 [10.0, 20.0] | - |" in text
-    assert "| weight mass on transitions with a cost | 1.5 [1.0, 2.0] | 1.5 [1.0, 2.0] |" in text
-    assert "effective sample size" not in text  # recorded by no run
+    assert text.count("DICE diagnostics") == 1
+    assert "**a, SpoilDICE: DICE diagnostics, weights on unlabeled**" in text
+    assert "| support: share of D_U kept | 25.0 [10.0, 50.0] | - |" in text
+    assert "| weight mass on transitions with a cost | 2.0 [1.0, 3.0] | 2.0 [1.0, 3.0] |" in text
+    assert "effective sample size" not in text and "nan" not in text
     assert diagnostics_markdown(load_experiment([tmp_path / "a" / "performance0.25" / "bc"])) == ""
 
     report = run_command(["recipes/report.py", "--figure", tmp_path, "--out", tmp_path / "fig.md"])
     assert report.returncode == 0, report.stderr
-    assert "| support: share of D_U kept | 15.0 [10.0, 20.0] | - |" in (tmp_path / "fig.md").read_text()
+    assert "| support: share of D_U kept | 25.0 [10.0, 50.0] | - |" in (tmp_path / "fig.md").read_text()
 
 
 def test_cells_of_one_dataset_from_two_stacks_or_two_files_are_refused(tmp_path):
