@@ -109,11 +109,17 @@ def _cell(value: tuple[float, float], bold: bool) -> str:
     return f"**{text}**" if bold else text
 
 
+def _head(first: str, levels: list, level: str | None) -> list[str]:
+    """A table's header and rule: ``first``, then one column per level ("value" for a table of one
+    configuration, ``level`` ``None``)."""
+    head = [str(v) if level is not None else "value" for v in levels]
+    return [f"| {first} | " + " | ".join(head) + " |", "|---" * (len(levels) + 1) + "|"]
+
+
 def _table(
     rows: Mapping[tuple, dict], levels: list, algos: list[str], metric: str, level: str | None
 ) -> list[str]:
-    head = [str(v) if level is not None else "value" for v in levels]
-    lines = [f"| {METRIC_NAMES[metric]} | " + " | ".join(head) + " |", "|---" * (len(levels) + 1) + "|"]
+    lines = _head(METRIC_NAMES[metric], levels, level)
     for algo in algos:
         cells = []
         for value in levels:
@@ -205,7 +211,6 @@ def diagnostics_markdown(experiment: Experiment) -> str:
         | effective sample size (share of the weighted set) | 2.0 [2.0, 2.0] |
     """
     levels, lines = experiment.levels, []
-    head = [str(v) if experiment.level is not None else "value" for v in levels]
     for dataset in experiment.datasets:
         for algo in experiment.algos:
             groups = [experiment.cells.get((dataset, value, algo), []) for value in levels]
@@ -231,7 +236,7 @@ def diagnostics_markdown(experiment: Experiment) -> str:
                 title = f"**{dataset}, {ALGORITHM_NAMES.get(algo, algo)}: DICE diagnostics, weights on "
                 title += f"{' / '.join(sorted(roles))}**"
                 lines += [f"{title} (percent, mean over seeds [range])", ""]
-                lines += ["| diagnostic | " + " | ".join(head) + " |", "|---" * (len(levels) + 1) + "|"]
+                lines += _head("diagnostic", levels, experiment.level)
                 lines += [*rows, ""]
     return "\n".join(lines).rstrip("\n")
 
@@ -272,13 +277,11 @@ def experiment_statistics(experiment: Experiment, *, reps: int = 2000, seed: int
         estimates[value] = (
             interval_estimates(scores, statistics=("iqm",), reps=reps, seed=seed) if scores else {}
         )
-    head = [str(v) if experiment.level else "value" for v in levels]
     lines = [
         "Interquartile mean of the normalised feasible return [95 % stratified-bootstrap interval] over seeds "
         "and tasks:",
         "",
-        "| method | " + " | ".join(head) + " |",
-        "|---" * (len(levels) + 1) + "|",
+        *_head("method", levels, experiment.level),
     ]
     for algo in algos:
         cells = []
