@@ -5,6 +5,7 @@ files apart and ``spoil-report --figure`` draws the figure from them."""
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -119,6 +120,17 @@ def test_an_experiment_sweep_names_skips_resumes_and_draws_its_cells(tmp_path, t
     for d in CELLS:
         for name in ("config.yaml", "results.json"):
             assert (kept_dir / d / name).read_bytes() == (sweep_dir / d / name).read_bytes()
+
+    # on another machine (the run folders gone), the kept files copied into a new sweep folder are enough for the
+    # same command to pass over every cell
+    elsewhere = tmp_path / "elsewhere"
+    shutil.copytree(kept_dir, elsewhere)
+    moved = [*command[1:-1], f"hydra.sweep.dir={elsewhere}"]
+    fourth = run_command(moved)
+    assert fourth.returncode == 0 and fourth.stdout.count("finished already; nothing to do") == 4
+    assert sorted(p.relative_to(elsewhere) for p in elsewhere.rglob("*") if p.is_file()) == sorted(
+        [Path("multirun.yaml")] + [Path(d) / name for d in CELLS for name in ("config.yaml", "results.json")]
+    )
 
     # the figure and its tables from the kept files alone
     report = run_command(
