@@ -125,8 +125,7 @@ def test_an_experiment_sweep_names_skips_resumes_and_draws_its_cells(tmp_path, t
     # same command to pass over every cell
     elsewhere = tmp_path / "elsewhere"
     shutil.copytree(kept_dir, elsewhere)
-    moved = [*command[1:-1], f"hydra.sweep.dir={elsewhere}"]
-    fourth = run_command(moved)
+    fourth = run_command(_command(tiny_pc1_dataset, elsewhere)[1:])
     assert fourth.returncode == 0 and fourth.stdout.count("finished already; nothing to do") == 4
     assert sorted(p.relative_to(elsewhere) for p in elsewhere.rglob("*") if p.is_file()) == sorted(
         [Path("multirun.yaml")] + [Path(d) / name for d in CELLS for name in ("config.yaml", "results.json")]
