@@ -22,6 +22,10 @@ that computes the step's gradients (the relu_chain form's count). The library an
 compute the same losses before timing. Timings on shared 2-core machines vary by 30-50 % between runs; the
 ratios, measured in one run with interleaved repeats (medians), are the stable numbers. For a one-thread
 comparison with the peer, pin the process to one core: ``taskset -c 1 make bench ARGS="--threads 1"``.
+
+``--device cuda`` runs every step, batch and product on the GPU (the library's compiled steps then take CUDA
+graphs, ``reduce-overhead``, as ``device=cuda`` does in the recipe; the JAX peer runs on the GPU when JAX has a
+CUDA backend), and each timing waits for the device before it stops. ``medium`` there is TF32.
 """
 
 from __future__ import annotations
@@ -35,6 +39,8 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
+from spoil_torchrl.devices import training_device
+from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.modules import make_actor, make_value_network
 from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from spoil_torchrl.precision import matmul_precision, matmul_relative_error
@@ -42,6 +48,7 @@ from spoil_torchrl.trainers import CompiledStepper, MultiLossStepper
 from spoil_torchrl.trainers.compiled import (
     detached,
     pure_losses,
+    random_streams,
     step_inputs,
     step_parameters,
     update_gradients,
@@ -72,13 +79,16 @@ def make_batch(n: int, n_init: int, obs_dim: int, act_dim: int) -> TensorDict:
 class LibraryStep:
     """One update with SpoilDICELoss + WeightedBCLoss and three Adam optimisers."""
 
-    def __init__(self, obs_dim: int, act_dim: int, cells: tuple[int, ...], lr: float = 3e-5) -> None:
+    def __init__(
+        self, obs_dim: int, act_dim: int, cells: tuple[int, ...], lr: float = 3e-5, device: str = "cpu"
+    ) -> None:
         self.dice = SpoilDICELoss(
             make_value_network(obs_dim, hidden_cells=cells), gamma=0.99, gradient_penalty=10.0
-        )
+        ).to(device)  # initialised on the CPU: the same weights on every device
         self.bc = WeightedBCLoss(
             make_actor(obs_dim, act_dim, hidden_cells=cells), role="unlabeled", weight="dice_weight"
-        )
+        ).to(device)
+        self.obs_dim = obs_dim
         self.optims = [
             torch.optim.Adam(self.dice.nu_network_params.values(True, True), lr=lr),
             torch.optim.Adam([self.dice.lagrange], lr=lr),
@@ -107,8 +117,9 @@ class CompiledLibraryStep:
         cells: tuple[int, ...],
         penalty_form: str = "autograd",
         mode: str | None = None,
+        device: str = "cpu",
     ) -> None:
-        step = LibraryStep(obs_dim, act_dim, cells)
+        step = LibraryStep(obs_dim, act_dim, cells, device=device)
         step.dice.penalty_form = penalty_form
         self.stepper = CompiledStepper({"dice": step.dice, "actor": step.bc}, step.optims, mode=mode)
 
@@ -122,9 +133,12 @@ class VectorizedSeeds:
     vmapped and compiled, one fused Adam per optimiser over the stacked parameters, each seed's random stream.
     Each call is one step of every seed, each on its own batch (``k`` consecutive batches of ``batches``)."""
 
-    def __init__(self, k: int, obs_dim: int, act_dim: int, cells: tuple[int, ...], batches) -> None:
-        seeds = [LibraryStep(obs_dim, act_dim, cells) for _ in range(k)]
-        self.stepper = VectorizedStepper([s.stepper for s in seeds], [torch.get_rng_state()] * k)
+    def __init__(
+        self, k: int, obs_dim: int, act_dim: int, cells: tuple[int, ...], batches, device: str = "cpu"
+    ) -> None:
+        seeds = [LibraryStep(obs_dim, act_dim, cells, device=device) for _ in range(k)]
+        streams = random_streams(torch.device(device))
+        self.stepper = VectorizedStepper([s.stepper for s in seeds], [streams] * k)
         self.k, self.batches, self.calls = k, batches, 0
 
     def __call__(self, batch: TensorDict) -> None:
@@ -133,9 +147,10 @@ class VectorizedSeeds:
         self.stepper.step(None, picked)
 
 
-def sampling_seconds(batch_size: int, obs_dim: int, act_dim: int, repeats: int = 200) -> float:
+def sampling_seconds(batch_size: int, obs_dim: int, act_dim: int, repeats: int = 200, device="cpu") -> float:
     """Seconds per ``DualDemoBuffers.sample()`` (safe, performant, unlabeled, init) on 600 episodes of 500 steps
-    (the embedded dataset's size), D_S and D_P 10 episodes each: the data side of one training step."""
+    (the embedded dataset's size), D_S and D_P 10 episodes each, drawn on ``device``: the data side of one
+    training step."""
     import numpy as np
 
     from spoil_torchrl.data import DualDemoBuffers, episodes_from_arrays
@@ -153,13 +168,21 @@ def sampling_seconds(batch_size: int, obs_dim: int, act_dim: int, repeats: int =
         }
     )
     roles = {"safe": torch.arange(10), "performant": torch.arange(10, 20), "unlabeled": torch.arange(600)}
-    buffers = DualDemoBuffers(episodes, roles, batch_size=batch_size)
+    buffers = DualDemoBuffers(episodes, roles, batch_size=batch_size, device=device)
     for _ in range(20):
         buffers.sample()
+    synchronize(device)
     start = time.perf_counter()
     for _ in range(repeats):
         buffers.sample()
+    synchronize(device)
     return (time.perf_counter() - start) / repeats
+
+
+def synchronize(device) -> None:
+    """Wait for ``device``'s queued work (a CUDA device runs asynchronously); nothing on a CPU."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def count_flops(fn) -> int:
@@ -201,30 +224,37 @@ def compiled_form_flops(compiled: CompiledLibraryStep, batch: TensorDict) -> int
     return count_flops(lambda: update_gradients(losses)(params, inputs))
 
 
-def matmul_rate(batch_size: int, cells: list[int], obs_dim: int, seconds: float = 1.0) -> float:
-    """FLOP/s of this machine on the step's own matmul shapes (its MLP layers at 3x the batch, as nu runs)."""
+def matmul_rate(batch_size: int, cells: list[int], obs_dim: int, seconds: float = 1.0, device="cpu") -> float:
+    """FLOP/s of ``device`` on the step's own matmul shapes (its MLP layers at 3x the batch, as nu runs)."""
     dims = [obs_dim, *cells]
-    mats = [(torch.randn(3 * batch_size, i), torch.randn(i, o)) for i, o in itertools.pairwise(dims)]
+    mats = [
+        (torch.randn(3 * batch_size, i, device=device), torch.randn(i, o, device=device))
+        for i, o in itertools.pairwise(dims)
+    ]
     flops_per_round = sum(2 * a.shape[0] * a.shape[1] * b.shape[1] for a, b in mats)
     for a, b in mats:  # warm-up
         a @ b
+    synchronize(device)
     rounds, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
         for a, b in mats:
             a @ b
         rounds += 1
+        synchronize(device)
     return rounds * flops_per_round / (time.perf_counter() - start)
 
 
-def machine_peak(size: int = 2048, seconds: float = 1.0) -> float:
-    """FLOP/s of this machine on a large square float32 product (``size`` x ``size``): the most any step's
-    products could reach here, whatever their shapes."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def machine_peak(size: int = 2048, seconds: float = 1.0, device="cpu") -> float:
+    """FLOP/s of ``device`` on a large square float32 product (``size`` x ``size``): the most any step's
+    products could reach there, whatever their shapes."""
+    a, b = torch.randn(size, size, device=device), torch.randn(size, size, device=device)
     a @ b  # warm-up
+    synchronize(device)
     rounds, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
         a @ b
         rounds += 1
+        synchronize(device)
     return rounds * 2 * size**3 / (time.perf_counter() - start)
 
 
@@ -236,7 +266,8 @@ class ReferenceStep:
         actor = library.bc.get_stateful_net("actor_network", copy=True)
         self.policy_net = actor.module[0].module  # MLP + NormalParams
         self.dist_kwargs = {"low": -1.0, "high": 1.0}
-        self.dist_class = type(actor.get_dist(TensorDict({"observation": torch.zeros(1, 28)}, [1])))
+        probe = torch.zeros(1, library.obs_dim, device=library.dice.lagrange.device)
+        self.dist_class = type(actor.get_dist(TensorDict({"observation": probe}, [1])))
         self.lagrange = nn.Parameter(library.dice.lagrange.detach().clone())
         self.optims = [
             torch.optim.Adam(self.nu.parameters(), lr=lr),
@@ -254,11 +285,11 @@ class ReferenceStep:
         base = batch["unlabeled", "log_ratio_performant"].squeeze(-1) + gamma * v_next * not_term - v
         adv_nu = base + self.lagrange.detach() * support
         adv_lam = adv_nu.detach() + (self.lagrange - self.lagrange.detach()) * support
-        lme = lambda x: torch.logsumexp(x, 0) - torch.log(torch.tensor(float(x.numel())))  # noqa: E731
+        lme = lambda x: torch.logsumexp(x, 0) - torch.log(torch.tensor(float(x.numel()), device=x.device))  # noqa: E731
         loss_nu = (1 - gamma) * v0.mean() + lme(adv_nu) - self.lagrange.detach()
         loss_lam = (1 - gamma) * v0.detach().mean() + lme(adv_lam) - self.lagrange
         # nu gradient penalty on unlabeled, init-unlabeled and s-s' interpolations
-        a1, a2 = torch.rand(n0, 1), torch.rand(n, 1)
+        a1, a2 = torch.rand(n0, 1, device=obs.device), torch.rand(n, 1, device=obs.device)
         pts = torch.cat([obs, a1 * s0 + (1 - a1) * obs[:n0], a2 * obs + (1 - a2) * nxt]).requires_grad_(True)
         (g,) = torch.autograd.grad(self.nu(pts).sum(), pts, create_graph=True)
         loss_nu = loss_nu + gp * g.norm(dim=-1).pow(2).mean()
@@ -278,9 +309,13 @@ class ReferenceStep:
 
 
 def rate(step, batches: list[TensorDict], steps: int) -> float:
+    """Updates per second of ``steps`` calls of ``step``, waiting for the batches' device at both ends."""
+    device = batches[0]["init", "observation"].device
+    synchronize(device)
     start = time.perf_counter()
     for i in range(steps):
         step(batches[i % len(batches)])
+    synchronize(device)
     return steps / (time.perf_counter() - start)
 
 
@@ -296,12 +331,20 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seeds", type=int, default=5, help="K of the vectorised seeds (0: skip)")
+    parser.add_argument("--device", default="cpu", help="cpu, or cuda (cuda:<index>): where the steps run")
     args = parser.parse_args()
-    jax = import_jax(args.threads)  # None: not installed (pip install -e ".[bench]"), no peer row
+    try:
+        device = training_device(args.device)  # one this machine has
+    except SettingsError as err:
+        parser.error(str(err))
+    # None: not installed (pip install -e ".[bench]"), or without a backend for the device: no peer row
+    jax = import_jax(args.threads, device.type)
     torch.manual_seed(0)
     torch.set_num_threads(args.threads)
     batches = [make_batch(args.batch_size, args.batch_size, args.obs_dim, args.act_dim) for _ in range(8)]
-    library = LibraryStep(args.obs_dim, args.act_dim, tuple(args.cells))
+    if device.type != "cpu":  # drawn on the CPU, so every device steps on the same data
+        batches = [b.to(device) for b in batches]
+    library = LibraryStep(args.obs_dim, args.act_dim, tuple(args.cells), device=device)
     reference = ReferenceStep(library)
 
     # Same math: with the gradient penalty off (it draws random points) the three losses must agree.
@@ -321,27 +364,37 @@ def main() -> None:
     steps = {"spoil_torchrl": (library, "highest"), "plain reference": (reference, "highest")}
     compile_seconds = {}
     for name, precision, make in (
-        ("compiled", "highest", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
-        ("compiled, medium", "medium", lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells)),
+        (
+            "compiled",
+            "highest",
+            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, device=device),
+        ),
+        (
+            "compiled, medium",
+            "medium",
+            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, device=device),
+        ),
         (
             "compiled, relu_chain",
             "highest",
-            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain"),
+            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain", device=device),
         ),
         (
             "compiled, relu_chain, medium",
             "medium",
-            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain"),
+            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain", device=device),
         ),
-        (  # the same kernels called from Inductor's Python wrapper instead of its C++ one
-            "compiled, relu_chain, Python wrapper",
+        (  # the same kernels called from Inductor's Python wrapper instead of its C++ one (on a GPU: no graphs)
+            "compiled, relu_chain, " + ("Python wrapper" if device.type == "cpu" else "no CUDA graphs"),
             "highest",
-            lambda: CompiledLibraryStep(args.obs_dim, args.act_dim, cells, "relu_chain", mode="default"),
+            lambda: CompiledLibraryStep(
+                args.obs_dim, args.act_dim, cells, "relu_chain", mode="default", device=device
+            ),
         ),
         (
             f"{args.seeds} seeds vmapped",
             "medium",
-            lambda: VectorizedSeeds(args.seeds, args.obs_dim, args.act_dim, cells, batches),
+            lambda: VectorizedSeeds(args.seeds, args.obs_dim, args.act_dim, cells, batches, device=device),
         ),
     ):
         if name.startswith("0 seeds"):
@@ -377,8 +430,8 @@ def main() -> None:
             rates["JAX peer (XLA jit)"].append(jax_rate(peer, peer_batches, args.steps))
         for precision, runs in peaks.items():
             with matmul_precision(precision):
-                runs.append(matmul_rate(args.batch_size, args.cells, args.obs_dim))
-                squares[precision].append(machine_peak())
+                runs.append(matmul_rate(args.batch_size, args.cells, args.obs_dim, device=device))
+                squares[precision].append(machine_peak(device=device))
     flops = step_flops(reference, batches[0])
     form_flops = compiled_form_flops(steps["compiled"][0], batches[0])
     least_flops = compiled_form_flops(steps["compiled, relu_chain"][0], batches[0])
@@ -393,12 +446,15 @@ def main() -> None:
     step_gflops = {"JAX peer (XLA jit)": None if peer is None else peer.flops(peer_batches[0]) / 1e9}
     ref = medians["plain reference"]
     with matmul_precision("medium"):
-        medium_error = matmul_relative_error()
+        medium_error = matmul_relative_error(device=device)
+    kernels = (
+        ("MKL", "handed to oneDNN") if device.type == "cpu" else ("cuBLAS in IEEE float32", "TF32 allowed")
+    )
     print(
         f"SpoilDICE + weighted-BC step, batch {args.batch_size}, cells {args.cells}, obs {args.obs_dim}, "
-        f"act {args.act_dim}, {args.threads} threads, median of {args.repeats} x {args.steps} steps; float32 "
-        "products by MKL unless a row says medium (train.matmul_precision=medium: handed to oneDNN, here with a "
-        f"relative error of {medium_error:.1e}, float32's order if below 1e-4)"
+        f"act {args.act_dim}, on {device}, {args.threads} threads, median of {args.repeats} x {args.steps} "
+        f"steps; float32 products by {kernels[0]} unless a row says medium (train.matmul_precision=medium: "
+        f"{kernels[1]}, here with a relative error of {medium_error:.1e}, float32's order if below 1e-4)"
     )
     for name, value in medians.items():
         runs = rates.get(name)
@@ -415,7 +471,7 @@ def main() -> None:
         if name.startswith("limit"):
             detail = (
                 f"({least_flops / 1e9:.2f} GFLOP per step, the least: the relu_chain form's count; at "
-                f"{square[precision] / 1e9:.0f} GFLOP/s, this machine's rate on a 2048 x 2048 product)"
+                f"{square[precision] / 1e9:.0f} GFLOP/s, {device}'s rate on a 2048 x 2048 product)"
             )
         elif runs:
             detail = f"(runs: {[round(r, 1) for r in runs]})"
@@ -435,7 +491,7 @@ def main() -> None:
         for name in ("compiled, relu_chain", "compiled"):
             form = "the default" if name.endswith("relu_chain") else "autograd's penalty"
             print(f"  {name} ({form}) against the JAX peer: {medians[name] / peer_rate:.2f}x")
-    sample = sampling_seconds(args.batch_size, args.obs_dim, args.act_dim)
+    sample = sampling_seconds(args.batch_size, args.obs_dim, args.act_dim, device=device)
     print(
         f"  sampling the four roles: {1000 * sample:.2f} ms per batch = "
         f"{100 * sample * medians['spoil_torchrl']:.1f} % of a library step"

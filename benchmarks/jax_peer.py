@@ -33,9 +33,10 @@ import os
 import time
 
 
-def import_jax(threads: int):
-    """Import JAX (``None`` when it is not installed) with XLA on ``threads`` threads (only 1 is forced: XLA's
-    CPU client otherwise sizes its pool from the process's cores)."""
+def import_jax(threads: int, platform: str = "cpu"):
+    """Import JAX (``None`` when it is not installed, or has no backend for ``platform``: ``"cpu"`` or
+    ``"cuda"``) with XLA on ``platform``, on ``threads`` threads (only 1 is forced, on the CPU: XLA's CPU client
+    otherwise sizes its pool from the process's cores)."""
     if threads == 1:
         flags = os.environ.get("XLA_FLAGS", "")
         os.environ["XLA_FLAGS"] = (
@@ -47,7 +48,11 @@ def import_jax(threads: int):
         import optax  # noqa: F401
     except ImportError:
         return None
-    jax.config.update("jax_platforms", "cpu")
+    jax.config.update("jax_platforms", platform)
+    try:
+        jax.devices(platform)
+    except RuntimeError:  # e.g. a CPU-only JAX asked for "cuda"
+        return None
     return jax
 
 
@@ -180,7 +185,7 @@ class JaxStep:
             "log_ratio": u["log_ratio_performant"].reshape(-1),
             "support": u["safe_support"].reshape(-1),
         }
-        return {k: jnp.asarray(v.numpy()) for k, v in arrays.items()}
+        return {k: jnp.asarray(v.cpu().numpy()) for k, v in arrays.items()}
 
     def __call__(self, batch: dict) -> None:
         self.state, self.key, (value, _) = self._step(self.state, batch, self.key)

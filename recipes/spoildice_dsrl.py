@@ -63,9 +63,10 @@ def run(cfg: DictConfig, run_dir: Path) -> dict | list[dict]:
         # 1. Input: D_S, D_P, D_U, D_0 in their buffers; the evaluator, the logger and results.json
         # (claim.seeds: each seed's settings, run directory and the checkpoint it continues from)
         runs = open_runs(claim)
-        with recorded_failure(runs), training_precision(cfg.train.get("matmul_precision", "highest")):
-            note_precision(runs)  # training's float32 products as configured (IEEE where oneDNN would take
-            # bfloat16); every rollout's are IEEE
+        precision = cfg.train.get("matmul_precision", "highest")
+        with recorded_failure(runs), training_precision(precision, runs[0].buffers.device):
+            note_precision(runs)  # training's float32 products as configured (IEEE where the device would
+            # take bfloat16 or TF32); every rollout's are IEEE
             # 2. Pre-train C_P and C_S, fit the support cut, annotate D_U (each seed from its own random stream;
             # stored in the run, and loaded, not trained again, when it resumes)
             pretrained = [pretrain(inputs) for inputs in runs]

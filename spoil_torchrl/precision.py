@@ -15,7 +15,8 @@ step's layer products 2.2x as fast as the MKL kernel ``"highest"`` uses, at floa
 error against float64: 4e-6, against 2e-6 for MKL; CONTRIBUTING.md, "Matmul precision"). On a CPU with AMX, oneDNN may
 take bfloat16 kernels instead (relative errors of ~1e-2). :func:`matmul_relative_error` measures which of the
 two a machine does; the main recipe trains at :func:`training_precision`, which falls back to ``"highest"`` where
-products would lose precision, and records the level in force and its error in ``results.json``.
+products would lose precision on the training device (a CPU's bfloat16 kernels, a GPU's TF32), and records the
+level in force and its error on that device in ``results.json``.
 The recipe applies the level to training (pre-training and the main stage) only, and every policy rollout
 (:func:`~spoil_torchrl.envs.rollout.rollout`: generated datasets, evaluations) computes IEEE products whatever the
 level, so neither a cached dataset nor an evaluation depends on it.
@@ -84,33 +85,40 @@ def _scoped(get: Callable[[], Any], set_: Callable[[Any], None], value: Any) -> 
         set_(previous)
 
 
-def matmul_relative_error(rows: int = 512, cells: int = 256) -> float:
+def matmul_relative_error(
+    rows: int = 512, cells: int = 256, device: torch.device | str | None = None
+) -> float:
     """Largest relative error, against float64, of a float32 ``[rows, cells] x [cells, cells]`` product (the size of
-    a hidden layer of the default networks on a batch) at the current matmul precision, on the CPU.
+    a hidden layer of the default networks on a batch) at the current matmul precision, computed on ``device``
+    (``None``: the CPU) from the same operands on every device.
 
-    Below :data:`REDUCED_PRECISION_ERROR` the products are float32 whatever kernel computes them.
+    Below :data:`REDUCED_PRECISION_ERROR` the products are float32 whatever kernel computes them. On an NVIDIA
+    GPU, ``"high"`` and ``"medium"`` allow TF32 (a 10-bit mantissa: errors of ~1e-3).
 
     Examples:
         >>> matmul_relative_error() < REDUCED_PRECISION_ERROR  # "highest": IEEE float32
+        True
+        >>> matmul_relative_error(device="cpu") == matmul_relative_error()
         True
     """
     generator = torch.Generator().manual_seed(0)
     a = torch.randn(rows, cells, generator=generator)
     b = torch.randn(cells, cells, generator=generator)
     exact = a.double() @ b.double()
-    return float(((a @ b).double() - exact).abs().max() / exact.abs().mean())
+    product = a @ b if _on_cpu(device) else (a.to(device) @ b.to(device)).cpu()
+    return float((product.double() - exact).abs().max() / exact.abs().mean())
 
 
 @contextlib.contextmanager
-def training_precision(precision: str) -> Iterator[str]:
-    """Run training's block at ``precision`` (``train.matmul_precision``) if this machine keeps float32 products
-    float32 there, else at ``"highest"``: yields the level in force.
+def training_precision(precision: str, device: torch.device | str | None = None) -> Iterator[str]:
+    """Run training's block at ``precision`` (``train.matmul_precision``) if ``device`` (training's; ``None``: the
+    CPU) keeps float32 products float32 there, else at ``"highest"``: yields the level in force.
 
     ``"medium"`` is the default presets' level because on CPUs without AMX oneDNN computes it in float32, 2.2x as
     fast as MKL. A CPU with AMX computes it in bfloat16 (relative error ~1e-2, :func:`matmul_relative_error`):
     the run would then train with other arithmetic than the same settings give elsewhere, so training falls back
     to IEEE float32 (``"highest"``), says so once, and the run records the level in force
-    (``results.json``'s ``matmul_precision``).
+    (``results.json``'s ``matmul_precision``). The same holds on an NVIDIA GPU, where ``"medium"`` is TF32.
 
     Examples:
         >>> with training_precision("highest") as level:
@@ -118,26 +126,38 @@ def training_precision(precision: str) -> Iterator[str]:
         'highest'
     """
     with matmul_precision(precision):
-        error = 0.0 if precision == "highest" else matmul_relative_error()
+        error = 0.0 if precision == "highest" else matmul_relative_error(device=device)
         if error <= REDUCED_PRECISION_ERROR:
             yield precision
             return
+    who = "this CPU's oneDNN" if _on_cpu(device) else str(device)
     log.warning(
-        f"train.matmul_precision={precision}: this CPU's oneDNN computes float32 products in bfloat16 there "
-        f"(relative error {error:.1e}); training uses IEEE float32 (highest) instead"
+        f"train.matmul_precision={precision}: {who} computes float32 products in {_reduced_kernels(device)} "
+        f"there (relative error {error:.1e}); training uses IEEE float32 (highest) instead"
     )
     with matmul_precision("highest"):
         yield "highest"
 
 
-def matmul_check() -> float:
-    """The relative error of float32 products at the run's matmul precision; a warning when they lose precision
-    (``train.matmul_precision=medium`` on a CPU whose oneDNN takes bfloat16 kernels, e.g. one with AMX)."""
-    error = matmul_relative_error()
+def matmul_check(device: torch.device | str | None = None) -> float:
+    """The relative error of float32 products at the run's matmul precision on ``device`` (training's; ``None``:
+    the CPU); a warning when they lose precision (``train.matmul_precision=medium`` on a CPU whose oneDNN takes
+    bfloat16 kernels, e.g. one with AMX, or on a GPU's TF32)."""
+    error = matmul_relative_error(device=device)
     if error > REDUCED_PRECISION_ERROR:
         log.warning(
             f"train.matmul_precision={torch.get_float32_matmul_precision()}: float32 products lose precision on "
-            f"this machine (relative error {error:.1e}: bfloat16 kernels); train.matmul_precision=highest keeps "
-            "them IEEE float32"
+            f"{device or 'this machine'} (relative error {error:.1e}: {_reduced_kernels(device)} kernels); "
+            "train.matmul_precision=highest keeps them IEEE float32"
         )
     return error
+
+
+def _reduced_kernels(device: torch.device | str | None) -> str:
+    """The arithmetic a reduced-precision float32 product uses on ``device``: a CPU's oneDNN takes bfloat16, an
+    NVIDIA GPU TF32 (or bfloat16)."""
+    return "bfloat16" if _on_cpu(device) else "TF32 or bfloat16"
+
+
+def _on_cpu(device: torch.device | str | None) -> bool:
+    return device is None or torch.device(device).type == "cpu"

@@ -147,7 +147,7 @@ def recorded_failure(runs: list[RunInputs]):
 
 def note_precision(runs: list[RunInputs]) -> None:
     """Record the matmul precision training runs at, and its measured error, in every run's results."""
-    error = matmul_check()  # as this machine computes them
+    error = matmul_check(runs[0].buffers.device)  # as the training device computes them
     for inputs in runs:
         inputs.results["matmul_precision"] = torch.get_float32_matmul_precision()
         inputs.results["matmul_relative_error"] = error
