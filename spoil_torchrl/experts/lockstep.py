@@ -22,6 +22,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from spoil_torchrl.divergence import check_finite
+from spoil_torchrl.envs.path_reward import check_half_axes, task_ellipse_reward
 
 
 def env_seed(batch_seed: int, env_index: int) -> int:
@@ -47,7 +48,14 @@ class LockstepCollector:
         >>> collector.close()
     """
 
-    def __init__(self, env_id: str, num_envs: int, *, cost_component: str | None = None) -> None:
+    def __init__(
+        self,
+        env_id: str,
+        num_envs: int,
+        *,
+        cost_component: str | None = None,
+        track_ellipse: tuple[float, float] | None = None,
+    ) -> None:
         from spoil_torchrl.envs import make_safety_gymnasium
         from spoil_torchrl.envs.cost_components import cost_components
 
@@ -58,6 +66,10 @@ class LockstepCollector:
         self.component = cost_component
         self.split = None if cost_component is None else cost_components(env_id)
         self.envs = [make_safety_gymnasium(env_id) for _ in range(num_envs)]
+        #: with half-axes, the reward is the circle task's for that ellipse (envs.path_reward), not the task's
+        self.ellipse = None if track_ellipse is None else check_half_axes(track_ellipse)
+        if self.ellipse is not None:
+            task_ellipse_reward(self.envs[0], self.ellipse)  # a task without a circle raises here
         space = self.envs[0].action_space
         self.low, self.high = space.low, space.high
 
@@ -71,6 +83,12 @@ class LockstepCollector:
                 f"ppo.cost_component = {self.component!r}: {self.env_id}'s constraints are {sorted(parts[0])}"
             )
         return [p[self.component] for p in parts]
+
+    def _rewards(self, step: list) -> list[float]:
+        """The step's rewards: the task's, or its reward for the tracked ellipse (from the simulator)."""
+        if self.ellipse is None:
+            return [float(s[1]) for s in step]
+        return [task_ellipse_reward(env, self.ellipse) for env in self.envs]
 
     def batch(self, actor: nn.Module, frames: int, seed: int) -> TensorDict:
         """``frames`` frames of ``actor``'s sampled actions, ``frames / num_envs`` per environment, each
@@ -101,7 +119,7 @@ class LockstepCollector:
                     ("action", action),
                     ("logp", out["action_log_prob"]),
                     ("next", torch.as_tensor(next_obs, dtype=torch.float32)),
-                    ("reward", torch.tensor([float(s[1]) for s in step], dtype=torch.float32)),
+                    ("reward", torch.tensor(self._rewards(step), dtype=torch.float32)),
                     ("cost", torch.tensor(self._costs(step), dtype=torch.float32)),
                     ("term", torch.as_tensor(terminated)),
                     ("trunc", torch.as_tensor(truncated)),

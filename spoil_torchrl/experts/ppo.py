@@ -217,7 +217,9 @@ def train_ppo(
     env = (
         make_env()
         if config.num_envs == 1
-        else LockstepCollector(env_id, config.num_envs, cost_component=config.cost_component)
+        else LockstepCollector(
+            env_id, config.num_envs, cost_component=config.cost_component, track_ellipse=config.track_ellipse
+        )
     )
     start = time.perf_counter()
     try:

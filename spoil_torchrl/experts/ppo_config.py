@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from spoil_torchrl.envs.path_reward import check_half_axes
+
 
 @dataclass
 class PPOConfig:
@@ -27,6 +29,9 @@ class PPOConfig:
     ``cost_component`` (with ``num_envs`` > 1) trains against one constraint's own cost instead of the task's
     (:mod:`spoil_torchrl.envs.cost_components`, e.g. ``x_wall`` in SafetyPointCircle2): a demonstrator safe on
     that constraint only.
+    ``track_ellipse`` ``[a, b]`` (with ``num_envs`` > 1, in a circle task) trains on the task's reward for an
+    ellipse with those half-axes instead of its circle (:mod:`spoil_torchrl.envs.path_reward`): a demonstrator
+    that keeps one pair of SafetyPointCircle2's walls and crosses the other by design.
     ``init_actor`` starts the actor from a policy instead of at random (fine-tuning; the critics start afresh):
     a policy or PPO checkpoint file, or ``zoo:<name>`` for a committed policy of the task, with the same
     ``hidden_cells``, without observation standardisation. E.g. a demonstrator that keeps one constraint only, tuned
@@ -54,6 +59,7 @@ class PPOConfig:
     lagrange_init: float = 0.0
     cost_penalty: float = 0.0
     cost_component: str | None = None
+    track_ellipse: tuple[float, float] | None = None
     checkpoint_every: int = 5  # batches
     normalize_observations: bool = False
     record_episodes: int = 0
@@ -121,11 +127,17 @@ class PPOConfig:
                 f"ppo.cost_penalty = {penalty} with ppo.lagrangian=true: PPO-Lagrangian learns its multiplier; "
                 "a fixed penalty needs ppo.lagrangian=false"
             )
-        if self.cost_component is not None and self.num_envs == 1:
-            raise ValueError(
-                f"ppo.cost_component = {self.cost_component!r} needs ppo.num_envs > 1 (the lockstep collector "
-                "reads each constraint's cost from the simulator)"
-            )
+        for name, what in (
+            ("cost_component", "each constraint's cost"),
+            ("track_ellipse", "the agent's position"),
+        ):
+            if getattr(self, name) is not None and self.num_envs == 1:
+                raise ValueError(
+                    f"ppo.{name} = {getattr(self, name)!r} needs ppo.num_envs > 1 (the lockstep collector reads "
+                    f"{what} from the simulator)"
+                )
+        if self.track_ellipse is not None:
+            self.track_ellipse = check_half_axes(self.track_ellipse)
         if self.init_actor is not None and self.normalize_observations:
             raise ValueError(
                 "ppo.init_actor with ppo.normalize_observations=true: the running statistics would start afresh "
