@@ -401,7 +401,12 @@ def test_observation_columns_a_few_extremes_would_erase_are_named():
 
 
 def test_an_unknown_minari_dataset_says_where_it_was_looked_for(tmp_path, monkeypatch):
-    pytest.importorskip("minari")
+    minari = pytest.importorskip("minari")
+
+    def offline(dataset_id, force_download=False):  # the remote's client retries for ~20 s without network
+        raise ConnectionError("Name or service not known")
+
+    monkeypatch.setattr(minari, "download_dataset", offline)
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
     with pytest.raises(DatasetError, match=f"'nope/none-v0' is not in {tmp_path}"):
         load_episodes("minari:nope/none-v0")
