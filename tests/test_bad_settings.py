@@ -62,6 +62,11 @@ SETTING_CASES = [
     ({"train": {"log_interval": -1}}, "train.log_interval = -1"),
     ({"algo": {"hidden_cells": "256"}}, "algo.hidden_cells = '256'"),
     ({"algo": {"standardize_reward": "yes"}}, "algo.standardize_reward = 'yes'"),
+    ({"algo": {"distribution": "gaussian"}}, "algo.distribution = 'gaussian': expected tanh_normal"),
+    (
+        {"task": {"env_id": "SafetyPointCircle1-v0"}, "algo": {"distribution": "categorical"}},
+        "algo.distribution = 'categorical': SafetyPointCircle1-v0's actions are continuous",
+    ),
 ]
 
 
@@ -69,6 +74,12 @@ SETTING_CASES = [
 def test_a_bad_setting_is_named(settings, match):
     with pytest.raises(SettingsError, match=match.replace("[", r"\[").replace(".", r"\.")):
         check_settings({"seed": 0, "threads": 1, **settings})
+
+
+@pytest.mark.parametrize("distribution", ["tanh_normal", "normal"])
+def test_a_distribution_of_continuous_actions_is_taken_for_a_task(distribution):
+    task = {"env_id": "SafetyHopperVelocity-v1", "eval_num_envs": 1}
+    check_settings({"seed": 0, "threads": 1, "task": task, "algo": {"distribution": distribution}})
 
 
 @pytest.mark.parametrize(

@@ -46,6 +46,9 @@ def _snapshot(folder: Path) -> dict[str, str]:
         (["dataset.return_range=[0,40,-7]"], "dataset.return_range"),
         (["task.eval_num_envs=0"], "task.eval_num_envs = 0"),
         (["dataset.source=generated:no-such-data"], "unknown generated dataset 'no-such-data'"),
+        (["dataset.source=foo:bar"], "dataset.source = 'foo:bar': unknown dataset source; use one of 'file:"),
+        (["algo.distribution=gaussian"], "algo.distribution = 'gaussian': expected tanh_normal"),
+        (["algo=bc", "algo.distribution=categorical"], "SafetyPointCircle1-v0's actions are continuous"),
         (
             ["DATA=task", "dataset.n_safe=1", "dataset.n_performant=1", "dataset.n_unlabeled=1000"],
             "fewer than n_unlabeled=1000",

@@ -47,17 +47,28 @@ def fetch_dsrl(dataset: DSRLDataset, *, progress: bool = True) -> Path:
 def parse_source(source: str) -> tuple[str, str]:
     """Split ``"scheme:rest"``; a bare existing path is taken as ``file:``.
 
+    Raises:
+        DatasetError: ``source`` has none of the :data:`SCHEMES` and is no existing path (the main recipe
+            reports it in one line).
+
     Examples:
         >>> parse_source("dsrl:OfflineCarCircle-v0")
         ('dsrl', 'OfflineCarCircle-v0')
+        >>> parse_source("s3:bucket/file")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: dataset.source = 's3:bucket/file': unknown dataset source; \
+use one of 'file:...', 'dsrl:...', 'generated:...', 'minari:...' or the path of an existing file
     """
     scheme, sep, rest = source.partition(":")
     if sep and scheme in SCHEMES and rest:
         return scheme, rest
     if Path(source).exists():
         return "file", source
-    raise ValueError(
-        f"unknown dataset source {source!r}: use one of " + ", ".join(f"'{s}:...'" for s in SCHEMES)
+    raise DatasetError(
+        f"dataset.source = {source!r}: unknown dataset source; use one of "
+        + ", ".join(f"'{s}:...'" for s in SCHEMES)
+        + " or the path of an existing file"
     )
 
 

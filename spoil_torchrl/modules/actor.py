@@ -27,7 +27,9 @@ LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 #: atanh(1 - ACTION_CLIP_EPS): a pre-tanh mean beyond this cannot be told apart from the bound in float32.
 TANH_MEAN_BOUND = math.atanh(1.0 - ACTION_CLIP_EPS)
 
-DISTRIBUTIONS = ("tanh_normal", "normal", "categorical")
+#: The distributions of continuous actions (a box); ``"categorical"`` is of discrete (one-hot) actions.
+CONTINUOUS_DISTRIBUTIONS = ("tanh_normal", "normal")
+DISTRIBUTIONS = (*CONTINUOUS_DISTRIBUTIONS, "categorical")
 
 
 class NormalParams(nn.Module):

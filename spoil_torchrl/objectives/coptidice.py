@@ -33,8 +33,11 @@ from spoil_torchrl.objectives.functional import (
     effective_sample_size,
     self_normalized_weights,
 )
-from spoil_torchrl.objectives.keys import get_role
+from spoil_torchrl.objectives.keys import get_role, role_entry
 from spoil_torchrl.objectives.pure import Tensors
+
+#: Where the reward and cost :class:`COptiDICELoss` reads come from, said when its role lacks them.
+DATA_WRITER = "the dataset's per-step reward and cost, in TED layout under 'next'"
 
 
 class COptiDICELoss(DICELoss):
@@ -316,7 +319,9 @@ class COptiDICELoss(DICELoss):
         out = super().inputs(tensordict)
         data = get_role(tensordict, self.dual_role)
         n = data.batch_size.numel()
-        return out | {"reward": data.get(keys.reward).reshape(n), "cost": data.get(keys.cost).reshape(n)}
+        reward = role_entry(data, self.dual_role, keys.reward, DATA_WRITER)
+        cost = role_entry(data, self.dual_role, keys.cost, DATA_WRITER)
+        return out | {"reward": reward.reshape(n), "cost": cost.reshape(n)}
 
     def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:
         """The four losses and the diagnostics (:meth:`losses`); the self-normalised weights and the advantage

@@ -17,7 +17,7 @@ from spoil_torchrl.objectives.functional import (
     self_normalized_weights,
     weight_diagnostics,
 )
-from spoil_torchrl.objectives.keys import get_role
+from spoil_torchrl.objectives.keys import get_role, role_entry
 from spoil_torchrl.objectives.pure import Tensors
 
 
@@ -73,6 +73,13 @@ def demodice_diagnostics(
             "nu_init": init_nu.detach().mean(),
             "advantage_mean": advantage.detach().mean(),
         }
+
+
+#: What writes the reward :class:`DemoDICELoss` reads, said when its role lacks it.
+REWARD_WRITER = (
+    "the reward log d_P/d_R, written by C_P's PUDiscriminatorLoss.log_ratio_module() in DemoDICE's "
+    "pre-training (buffers.annotate)"
+)
 
 
 class DemoDICELoss(DICELoss):
@@ -233,7 +240,8 @@ class DemoDICELoss(DICELoss):
     def inputs(self, tensordict: TensorDictBase, produced: frozenset = frozenset()) -> Tensors:
         """The dual's inputs (:meth:`DICELoss.inputs`) and the reward :math:`\\log d_P/d_R` of the role."""
         data = get_role(tensordict, self.dual_role)
-        reward = data.get(self.tensor_keys.reward).reshape(data.batch_size.numel())
+        reward = role_entry(data, self.dual_role, self.tensor_keys.reward, REWARD_WRITER)
+        reward = reward.reshape(data.batch_size.numel())
         return {**super().inputs(tensordict), "reward": reward}
 
     def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:

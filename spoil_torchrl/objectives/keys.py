@@ -70,6 +70,38 @@ def get_role(tensordict: TensorDictBase, role: NestedKey) -> TensorDictBase:
     return sub
 
 
+def role_entry(data: TensorDictBase, role: NestedKey, key: NestedKey, written_by: str) -> torch.Tensor:
+    """Entry ``key`` of ``data``, the sub-tensordict of ``role`` (:func:`get_role`), checked to be there: an
+    annotation a loss reads (a log-ratio, a support indicator, a DICE weight) that nothing has written yet is
+    named with its role and with ``written_by``, what writes it, instead of failing later on ``None``.
+
+    The check is one Python ``None`` test, made in a loss's eager
+    :meth:`~spoil_torchrl.objectives.pure.PureLoss.inputs` (never in the traced ``terms``), so the compiled
+    and vectorised steps do not pay for it.
+
+    Raises:
+        KeyError: ``data`` has no entry ``key``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict({"observation": torch.zeros(4, 2)}, [4])
+        >>> role_entry(data, "unlabeled", "observation", "the dataset").shape
+        torch.Size([4, 2])
+        >>> role_entry(data, "unlabeled", "dice_weight", "a DICE loss writes it")
+        Traceback (most recent call last):
+        ...
+        KeyError: "role 'unlabeled' has no entry 'dice_weight' (a DICE loss writes it); its entries are \
+['observation']"
+    """
+    value = data.get(key, None)
+    if value is None:
+        raise KeyError(
+            f"role {role!r} has no entry {key!r} ({written_by}); "
+            f"its entries are {sorted(map(str, data.keys()))}"
+        )
+    return value
+
+
 class DICETransitions(NamedTuple):
     """A role's transitions and the initial states, flattened for a DICE dual (see :func:`dice_transitions`)."""
 

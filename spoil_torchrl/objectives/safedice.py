@@ -19,7 +19,7 @@ from spoil_torchrl.objectives.functional import (
     self_normalized_weights,
     weight_diagnostics,
 )
-from spoil_torchrl.objectives.keys import get_role
+from spoil_torchrl.objectives.keys import get_role, role_entry
 from spoil_torchrl.objectives.pure import Tensors
 from spoil_torchrl.objectives.spoildice import closed_form_log_weight
 
@@ -107,6 +107,13 @@ def safedice_dual(init_nu: torch.Tensor, advantage: torch.Tensor, gamma: float) 
 #: SafeDICE's closed-form correction :math:`\log w^*(s,a) = A_\nu(s,a) - 1` (:math:`w^* = d^*/d_U`): the same
 #: function of the advantage as SpoilDICE's Eq. (11), so one function serves both.
 safedice_log_weight = closed_form_log_weight
+
+
+#: What writes the logit :class:`SafeDICELoss` reads, said when its role lacks it.
+LOGIT_WRITER = (
+    "the non-preferred discriminator's logit, written by PUDiscriminatorLoss.log_ratio_module("
+    "'log_ratio_nonpreferred') in SafeDICE's pre-training (buffers.annotate)"
+)
 
 
 class SafeDICELoss(DICELoss):
@@ -290,7 +297,8 @@ class SafeDICELoss(DICELoss):
         derives from each seed's discriminator, so it is an input: seeds with other values share one
         vectorised step (:attr:`per_seed`)."""
         data = get_role(tensordict, self.dual_role)
-        logit = data.get(self.tensor_keys.logit).reshape(data.batch_size.numel())
+        logit = role_entry(data, self.dual_role, self.tensor_keys.logit, LOGIT_WRITER)
+        logit = logit.reshape(data.batch_size.numel())
         dtype = next(iter(self.nu_network_params.values(True, True))).dtype
         probability, reward = self.reward(logit.detach().to(dtype))
         alpha = torch.tensor(self.alpha, dtype=dtype, device=logit.device)

@@ -17,7 +17,7 @@ from spoil_torchrl.objectives.functional import (
     self_normalized_weights,
     weight_diagnostics,
 )
-from spoil_torchrl.objectives.keys import get_role, role_key
+from spoil_torchrl.objectives.keys import get_role, role_entry, role_key
 from spoil_torchrl.objectives.pure import Tensors
 
 
@@ -205,6 +205,14 @@ def check_supports_intersect(support: torch.Tensor, key: NestedKey) -> None:
     )
 
 
+#: What writes the annotations :class:`SpoilDICELoss` reads, said when D_U lacks them.
+LOG_RATIO_WRITER = (
+    "C_P's log-ratio, written by PUDiscriminatorLoss.log_ratio_module('log_ratio_performant') in the "
+    "pre-training (buffers.annotate)"
+)
+SUPPORT_WRITER = "the support indicator of Eq. 13, written by a fitted SupportEstimator in the pre-training"
+
+
 class SpoilDICELoss(DICELoss):
     r"""SpoilDICE's dual objective over :math:`\nu` and the support multiplier :math:`\lambda`.
 
@@ -365,7 +373,7 @@ class SpoilDICELoss(DICELoss):
         keys = self.tensor_keys
         unlabeled = get_role(tensordict, keys.unlabeled)
         n = unlabeled.batch_size.numel()
-        support = unlabeled.get(keys.support)
+        support = role_entry(unlabeled, keys.unlabeled, keys.support, SUPPORT_WRITER)
         if self.constraints == 1:
             support = support.reshape(n)
         else:
@@ -378,7 +386,7 @@ class SpoilDICELoss(DICELoss):
         check_support_indicator(support, role_key(keys.unlabeled, keys.support))
         return {
             **super().inputs(tensordict),
-            "log_ratio": unlabeled.get(keys.log_ratio).reshape(n),
+            "log_ratio": role_entry(unlabeled, keys.unlabeled, keys.log_ratio, LOG_RATIO_WRITER).reshape(n),
             "support": support,
         }
 

@@ -11,7 +11,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from spoil_torchrl.objectives.functional import check_reduction, reduce
-from spoil_torchrl.objectives.keys import get_role, role_key
+from spoil_torchrl.objectives.keys import get_role, role_entry, role_key
 from spoil_torchrl.objectives.pure import PureLoss, PurePolicy, Tensors, flat_rows
 
 
@@ -44,6 +44,14 @@ def weighted_bc_outputs(
         if weight is None
         else weight.detach().float().mean(),
     }
+
+
+#: What writes the weight :class:`WeightedBCLoss` reads, said when its role lacks it.
+WEIGHT_WRITERS = (
+    "a DICE loss (SpoilDICELoss, DemoDICELoss, SafeDICELoss, COptiDICELoss) writes 'dice_weight' into its "
+    "role when it runs before WeightedBCLoss in the step; a pre-training annotates the others, e.g. FBC's "
+    "'safe_support', JFBC's 'jfbc_weight'"
+)
 
 
 class WeightedBCLoss(PureLoss):
@@ -168,7 +176,7 @@ class WeightedBCLoss(PureLoss):
         role = get_role(tensordict, keys.role)
         out = {"state": self.policy.states(role), "action": flat_rows(role, keys.action)}
         if keys.weight is not None and self.weight_key not in produced:
-            out["weight"] = role.get(keys.weight).reshape(-1)
+            out["weight"] = role_entry(role, keys.role, keys.weight, WEIGHT_WRITERS).reshape(-1)
         return out
 
     def terms(self, params: Tensors, x: Tensors, produced: dict) -> tuple[torch.Tensor, Tensors]:

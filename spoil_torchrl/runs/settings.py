@@ -2,9 +2,9 @@
 
 :func:`check_settings` walks the resolved configuration of the main recipe and checks every value whose
 meaning is fixed by its name (learning rates, discount factors, quantiles, step counts, penalty coefficients,
-layer sizes, ...) wherever it appears in ``train`` and ``algo``, the dataset's sizes and shares, and the
-top-level keys. Every problem is a :class:`SettingsError`
-naming the dotted key, the value and what is expected.
+layer sizes, ...) wherever it appears in ``train`` and ``algo``, the dataset's sizes and shares, the policy's
+distribution (one the task's actions can take), and the top-level keys. Every problem is a
+:class:`SettingsError` naming the dotted key, the value and what is expected.
 """
 
 from __future__ import annotations
@@ -17,8 +17,10 @@ from spoil_torchrl.data.parallel import available_cores
 from spoil_torchrl.data.prepare import SCHEMES
 from spoil_torchrl.devices import training_device
 from spoil_torchrl.errors import SettingsError
+from spoil_torchrl.modules.actor import CONTINUOUS_DISTRIBUTIONS, DISTRIBUTIONS
 from spoil_torchrl.objectives.input_gradient import PENALTY_FORMS
 from spoil_torchrl.precision import MATMUL_PRECISIONS
+from spoil_torchrl.tasks import ENV_TASKS
 
 
 def _number(value: Any) -> bool:
@@ -224,6 +226,7 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
             f"eval.constraints = {list(evaluated)!r} differs from dataset.constraints = {list(constraints)!r}: a run "
             "is evaluated on the constraints it trains with; set one of them"
         )
+    _check_distribution(cfg)
     _, algo = _dotted(cfg, "algo.name")
     if constraints and algo not in CONSTRAINED_ALGORITHMS:
         raise SettingsError(
@@ -231,6 +234,33 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
             f"{' | '.join(CONSTRAINED_ALGORITHMS)} only (one support cut per constraint); algo={algo} would "
             "ignore them (docs/several_constraints.md)"
         )
+
+
+def _check_distribution(cfg: Mapping[str, Any]) -> None:
+    """Refuse an ``algo.distribution`` :func:`~spoil_torchrl.modules.make_actor` does not offer, and one of
+    discrete actions for a simulated task: every task of :data:`~spoil_torchrl.tasks.ENV_TASKS` acts in a box
+    of continuous actions (``action_dim`` coordinates in ``[-action_bound, action_bound]``), where a one-hot
+    ``categorical`` policy trains and evaluates to numbers that mean nothing. (A task the table does not know
+    is left to the task lookup.)
+
+    Examples:
+        >>> task, algo = {"env_id": "SafetyPointCircle1-v0"}, {"distribution": "categorical"}
+        >>> check_settings({"task": task, "algo": algo})
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.errors.SettingsError: algo.distribution = 'categorical': SafetyPointCircle1-v0's \
+actions are continuous (2 coordinates in [-1, 1]); expected tanh_normal | normal
+    """
+    present, distribution = _dotted(cfg, "algo.distribution")
+    _, env_id = _dotted(cfg, "task.env_id")
+    task = ENV_TASKS.get(env_id) if isinstance(env_id, str) else None
+    accepted = DISTRIBUTIONS if task is None else CONTINUOUS_DISTRIBUTIONS
+    if present and distribution not in accepted:
+        why = ""
+        if distribution in DISTRIBUTIONS:  # offered, but not for this task's actions
+            bound = f"[-{task.action_bound:g}, {task.action_bound:g}]"
+            why = f"{env_id}'s actions are continuous ({task.action_dim} coordinates in {bound}); "
+        raise SettingsError(f"algo.distribution = {distribution!r}: {why}expected {' | '.join(accepted)}")
 
 
 def name_dataset_by_source(cfg, overrides: Sequence[str]) -> None:

@@ -124,7 +124,7 @@ def test_empty_non_hdf5_and_truncated_files(tmp_path):
 
 
 def test_unknown_source_and_dataset_id():
-    with pytest.raises(ValueError, match="unknown dataset source"):
+    with pytest.raises(DatasetError, match="dataset.source = 's3:bucket/file': unknown dataset source"):
         load_episodes("s3:bucket/file")
     with pytest.raises(UnknownDatasetError, match="did you mean 'OfflinePointCircle1Gymnasium-v0'"):
         load_episodes("dsrl:OfflinePointCircle1-v0")

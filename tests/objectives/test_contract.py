@@ -1,12 +1,13 @@
 """What every loss of the package must do, one parametrised module in the style of TorchRL's ``test/objectives``:
 its outputs are its ``out_keys`` (scalars under ``mean``), ``state_dict`` carries everything its outputs depend
 on, ``set_keys`` renames what it reads and refuses keys it does not know, it refuses the reductions it cannot
-honour, it leaves its input as it was apart from the entries it documents writing, it names a missing role, its
-keyword call returns its TensorDict call's outputs, and its compiled update (``fullgraph=True``) gives the eager
-gradients. Each loss's own module tests its equations."""
+honour, it leaves its input as it was apart from the entries it documents writing, it names a missing role and a
+missing annotation of a role (with what writes it), its keyword call returns its TensorDict call's outputs, and
+its compiled update (``fullgraph=True``) gives the eager gradients. Each loss's own module tests its equations."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -113,6 +114,9 @@ class Case:
     unknown_key: str = "no_such_key"
     #: a role it reads, deleted to check the error
     role: str = "init"
+    #: entries of the ``unlabeled`` role it reads, each deleted to check the error, with what the error must
+    #: say writes it
+    annotations: tuple = ()
     #: the entries it writes into its input (``(role, key)``)
     writes: tuple = ()
     #: the losses it computes per sample (``reduction="none"`` / ``"sum"``); none: it refuses other reductions
@@ -131,6 +135,7 @@ def _spoildice_case(constraints: int) -> Case:
         set_keys={"unlabeled": "pool", "support": "support_hat", "weight": "w"},
         rename=_renamed("unlabeled", "pool", "safe_support", "support_hat"),
         unknown_key="reward",
+        annotations=(("log_ratio_performant", "log_ratio_module"), ("safe_support", "SupportEstimator")),
         writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
         state_has=("lagrange",),
         plain={"gradient_penalty": 0.0},
@@ -145,6 +150,7 @@ CASES = {
         set_keys={"regularization": "pool", "reward": "r", "weight": "w"},
         rename=_renamed("unlabeled", "pool", "log_ratio_performant", "r"),
         unknown_key="support",
+        annotations=(("log_ratio_performant", "log_ratio_module"),),
         writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
         plain={"gradient_penalty": 0.0},
     ),
@@ -154,6 +160,7 @@ CASES = {
         set_keys={"unlabeled": "pool", "logit": "c_n", "weight": "w"},
         rename=_renamed("unlabeled", "pool", "log_ratio_nonpreferred", "c_n"),
         unknown_key="reward",
+        annotations=(("log_ratio_nonpreferred", "log_ratio_module"),),
         writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
         plain={"gradient_penalty": 0.0},
     ),
@@ -164,6 +171,7 @@ CASES = {
         set_keys={"unlabeled": "pool", "weight": "w"},
         rename=_renamed("unlabeled", "pool"),
         unknown_key="logit",
+        annotations=((("next", "reward"), "per-step reward"), (("next", "cost"), "per-step reward and cost")),
         writes=(("unlabeled", "dice_weight"), ("unlabeled", "dice_advantage")),
         state_has=("lagrange_param", "tau_param"),
         plain={"gradient_penalty": 0.0},
@@ -292,6 +300,18 @@ def test_a_missing_role_is_named(name):
     batch = case.batch()
     del batch[case.role]
     with pytest.raises(KeyError, match=f"no role '{case.role}'"):
+        case.make()(batch)
+
+
+@pytest.mark.parametrize(
+    "name, key, writer", [(name, *entry) for name in NAMES for entry in CASES[name].annotations]
+)
+def test_a_missing_annotation_is_named_with_what_writes_it(name, key, writer):
+    case = CASES[name]
+    batch = case.batch()
+    del batch["unlabeled", key]
+    named = re.escape(f"role 'unlabeled' has no entry {key!r} (")
+    with pytest.raises(KeyError, match=f"{named}.*{writer}"):
         case.make()(batch)
 
 

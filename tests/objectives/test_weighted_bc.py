@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from spoil_torchrl.modules import make_actor
-from spoil_torchrl.objectives import WeightedBCLoss
+from spoil_torchrl.modules import make_actor, make_value_network
+from spoil_torchrl.objectives import SpoilDICELoss, WeightedBCLoss
 from tests.conftest import ACT_DIM, OBS_DIM
 
 
@@ -86,3 +86,13 @@ def test_rejects_a_deterministic_module():
 
     with pytest.raises(TypeError, match="get_dist"):
         WeightedBCLoss(TensorDictModule(torch.nn.Linear(3, 2), in_keys=["observation"], out_keys=["action"]))
+
+
+def test_a_dice_weight_no_dice_loss_has_written_is_named(batch):
+    loss = WeightedBCLoss(_actor(), role="unlabeled", weight="dice_weight")
+    with pytest.raises(KeyError, match=r"role 'unlabeled' has no entry 'dice_weight' \(a DICE loss"):
+        loss(batch)  # before SpoilDICELoss has annotated D_U
+    SpoilDICELoss(make_value_network(OBS_DIM, hidden_cells=(8,)))(
+        batch
+    )  # writes ("unlabeled", "dice_weight")
+    assert torch.isfinite(loss(batch)["loss_actor"])
