@@ -25,7 +25,20 @@ from spoil_torchrl.trainers.offline import MultiLossStepper, offline_trainer
 @dataclass(frozen=True)
 class EpisodeConstraint:
     """The run's safety constraint as the evaluation sees it: episodes of at most ``episode_length`` steps (the
-    task's time limit T) whose summed cost should stay within ``cost_threshold`` (the prepared dataset's)."""
+    task's time limit T) whose summed cost should stay within ``cost_threshold`` (the prepared dataset's).
+
+    Examples:
+        >>> from spoil_torchrl.tasks import get_env_task
+        >>> task = get_env_task("SafetyPointCircle1-v0")
+        >>> constraint = EpisodeConstraint(cost_threshold=25.0, episode_length=task.episode_length)
+        >>> constraint
+        EpisodeConstraint(cost_threshold=25.0, episode_length=500)
+        >>> constraint.cost_threshold / constraint.episode_length  # the mean cost per step it allows
+        0.05
+
+    It reaches the builders that need it (COptiDICE, FBC's oracle ablation) as
+    ``BuildContext(..., constraint=constraint)``.
+    """
 
     cost_threshold: float
     episode_length: int
@@ -86,6 +99,25 @@ class PolicyTraining:
             ``dice_role``'s transitions; :func:`~spoil_torchrl.eval.dice_diagnostics.dice_diagnostics` reads it).
         dice_role: the role the DICE loss weights (D_U, or D_S for DemoDICE-S).
         observation_norm: the statistics the training data were standardised with, if any.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> episodes = TensorDict({"observation": torch.randn(8, 3), "action": torch.rand(8, 2) * 2 - 1,
+        ...                        "episode": torch.arange(4).repeat_interleave(2),
+        ...                        "is_init": torch.tensor([[True], [False]] * 4)}, [8])
+        >>> roles = {"safe": [0, 1], "performant": [1, 2], "unlabeled": [0, 1, 2, 3]}
+        >>> buffers = DualDemoBuffers(episodes, roles, batch_size=4)
+        >>> context = BuildContext(buffers, observation_dim=3, action_dim=2, progress=False)
+        >>> from spoil_torchrl.algorithms import ALGORITHMS
+        >>> cfg = {"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}
+        >>> training = ALGORITHMS["bc"](cfg, context)
+        >>> trainer = offline_trainer(training.stepper, buffers.sample, total_steps=3, progress_bar=False)
+        >>> trainer.train()
+        >>> with training.policy() as policy:  # the trained policy, as a plain module
+        ...     action = policy(TensorDict({"observation": torch.zeros(5, 3)}, [5]))["action"]
+        >>> action.shape, training.dice is None, training.diagnostics
+        (torch.Size([5, 2]), True, {})
     """
 
     stepper: MultiLossStepper
@@ -188,7 +220,15 @@ NO_PRETRAINING = Pretraining()
 
 
 def no_pretraining(cfg: Mapping[str, Any], context: BuildContext) -> Pretraining:
-    """The pre-training stage of an algorithm that has none."""
+    """The pre-training stage of an algorithm that has none.
+
+    Examples:
+        >>> from spoil_torchrl.algorithms import ALGORITHMS
+        >>> [name for name, algorithm in ALGORITHMS.items() if algorithm.pretrain is no_pretraining]
+        ['bc', 'dwbc_s', 'coptidice']
+        >>> no_pretraining({}, context=None) is NO_PRETRAINING  # nothing to annotate, store or load
+        True
+    """
     return NO_PRETRAINING
 
 
@@ -204,6 +244,25 @@ class Algorithm:
             on buffers that hold ``pretraining``'s annotations.
 
     Calling the algorithm runs both, as a fresh run does: ``algorithm(cfg, context)``.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> episodes = TensorDict({"observation": torch.randn(8, 3), "action": torch.rand(8, 2) * 2 - 1,
+        ...                        "episode": torch.arange(4).repeat_interleave(2),
+        ...                        "is_init": torch.tensor([[True], [False]] * 4)}, [8])
+        >>> roles = {"safe": [0, 1], "performant": [1, 2], "unlabeled": [0, 1, 2, 3]}
+        >>> buffers = DualDemoBuffers(episodes, roles, batch_size=4)
+        >>> context = BuildContext(buffers, observation_dim=3, action_dim=2, progress=False)
+        >>> from spoil_torchrl.algorithms.imitation import build_bc
+        >>> bc = Algorithm(no_pretraining, build_bc)  # as ALGORITHMS["bc"]
+        >>> cfg = {"distribution": "normal", "hidden_cells": [16], "actor_lr": 1e-3}
+        >>> stage = bc.pretrain(cfg, context)  # a run stores it; a resumed run loads it instead
+        >>> training = bc.main(cfg, context, stage)
+        >>> stage is NO_PRETRAINING, sorted(training.stepper.losses)
+        (True, ['actor'])
+        >>> sorted(bc(cfg, context).stepper.losses)  # both stages at once
+        ['actor']
     """
 
     pretrain: Callable[[Mapping[str, Any], BuildContext], Pretraining]
@@ -264,7 +323,27 @@ def train_discriminators(
     ``against`` (default ``"unlabeled"``: Eq. 16-17; DemoDICE-S uses ``"safe"``), trained for ``cfg["steps"]``
     steps with Adam (``cfg["lr"]``) through the offline :class:`~torchrl.trainers.Trainer`.
     ``cfg["gradient_penalty"]`` maps each positive role to its penalty coefficient (Table J: 10 for C_P, none
-    for C_S). ``cfg["compile"]`` (default false) steps them with a :class:`CompiledStepper`."""
+    for C_S). ``cfg["compile"]`` (default false) steps them with a :class:`CompiledStepper`.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> episodes = TensorDict({"observation": torch.randn(8, 3), "action": torch.rand(8, 2) * 2 - 1,
+        ...                        "episode": torch.arange(4).repeat_interleave(2),
+        ...                        "is_init": torch.tensor([[True], [False]] * 4)}, [8])
+        >>> roles = {"safe": [0, 1], "performant": [1, 2], "unlabeled": [0, 1, 2, 3]}
+        >>> buffers = DualDemoBuffers(episodes, roles, batch_size=4)
+        >>> context = BuildContext(buffers, observation_dim=3, action_dim=2, progress=False)
+        >>> cfg = {"steps": 5, "lr": 1e-3, "hidden_cells": [16],
+        ...        "gradient_penalty": {"performant": 10, "safe": 0}}  # Table J: a penalty on C_P only
+        >>> discriminators = train_discriminators(cfg, context)  # C_P and C_S, 5 steps each
+        >>> sorted(discriminators), type(discriminators["safe"]).__name__
+        (['performant', 'safe'], 'PUDiscriminatorLoss')
+        >>> log_ratio = discriminators["performant"].log_ratio_module("log_ratio_performant")
+        >>> buffers.annotate("unlabeled", log_ratio)  # as SpoilDICE's pre-training does
+        >>> buffers["unlabeled"].storage[:]["log_ratio_performant"].shape  # log r_P of every D_U transition
+        torch.Size([8, 1])
+    """
     penalties = cfg["gradient_penalty"]
     missing = [role for role in positives if role not in penalties]
     if missing:
@@ -300,7 +379,27 @@ def train_discriminators(
 def fit_support(
     loss: PUDiscriminatorLoss, buffers: DualDemoBuffers, role: str, kappa: float, out_key: str
 ) -> SupportEstimator:
-    """Eq. (13) on ``role``'s discriminator: the kappa-quantile cut of its log-ratio over ``role``'s data."""
+    """Eq. (13) on ``role``'s discriminator: the kappa-quantile cut of its log-ratio over ``role``'s data.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from spoil_torchrl.data import DualDemoBuffers
+        >>> episodes = TensorDict({"observation": torch.randn(8, 3), "action": torch.rand(8, 2) * 2 - 1,
+        ...                        "episode": torch.arange(4).repeat_interleave(2),
+        ...                        "is_init": torch.tensor([[True], [False]] * 4)}, [8])
+        >>> roles = {"safe": [0, 1], "performant": [1, 2], "unlabeled": [0, 1, 2, 3]}
+        >>> buffers = DualDemoBuffers(episodes, roles, batch_size=4)
+        >>> context = BuildContext(buffers, observation_dim=3, action_dim=2, progress=False)
+        >>> cfg = {"steps": 5, "lr": 1e-3, "hidden_cells": [16],
+        ...        "gradient_penalty": {"performant": 10, "safe": 0}}  # Table J: a penalty on C_P only
+        >>> safe_discriminator = train_discriminators(cfg, context)["safe"]
+        >>> support = fit_support(safe_discriminator, buffers, "safe", kappa=0.5, out_key="safe_support")
+        >>> support(buffers["safe"].storage[:].clone())["safe_support"].mean().item()  # >= 1 - kappa of D_S
+        0.75
+        >>> buffers.annotate("unlabeled", support)  # as SpoilDICE's pre-training marks D_U
+        >>> buffers["unlabeled"].storage[:]["safe_support"].shape
+        torch.Size([8, 1])
+    """
     estimator = SupportEstimator(loss.frozen_network(), kappa=kappa, out_key=out_key).to(buffers.device)
     return estimator.fit(buffers[role].storage[:])
 

@@ -52,6 +52,15 @@ class Segment:
         policy: ``"random"``, ``"zoo:<name>"`` (a committed policy of the task, see
             :func:`spoil_torchrl.zoo.zoo_policy`) or the path of a policy / PPO checkpoint file.
         episodes: how many episodes to roll out.
+
+    Examples:
+        >>> segments = [Segment("safe-high", "zoo:safe-high", 500), Segment("random", RANDOM_POLICY, 45)]
+        >>> sum(segment.episodes for segment in segments)
+        545
+        >>> Segment("random", RANDOM_POLICY, 0)
+        Traceback (most recent call last):
+        ...
+        ValueError: segment 'random': episodes must be >= 1, got 0
     """
 
     label: str
@@ -144,6 +153,23 @@ def collect(
     ``[start, stop)``, mean return and cost), ``random_return`` / ``safe_high_return``, the wall time, the
     software stack it was made on (``stack``: :func:`spoil_torchrl.stack.current_stack`), and ``metadata``'s
     entries.
+
+    Examples:
+        Three short random episodes of SafetyWalker2dVelocity-v1 (a walker that falls ends its episode), in
+        two segments; the reference rollouts run one episode each:
+
+        >>> import tempfile
+        >>> from spoil_torchrl.data import load_episodes, read_metadata
+        >>> segments = [Segment("random-a", RANDOM_POLICY, 2), Segment("random-b", RANDOM_POLICY, 1)]
+        >>> path = collect("SafetyWalker2dVelocity-v1", segments, Path(tempfile.mkdtemp()) / "demo.hdf5",
+        ...                num_envs=1, reference_episodes=1, progress=False, metadata={"note": "demo"})
+        >>> meta = read_metadata(path)
+        >>> {label: ids.tolist() for label, ids in segment_pools(meta).items()}
+        {'random-a': [0, 1], 'random-b': [2]}
+        >>> meta["cost_threshold"], meta["note"], meta["random_return"] < meta["safe_high_return"]
+        (25.0, 'demo', True)
+        >>> load_episodes(f"file:{path}")["episode"].unique().tolist()
+        [0, 1, 2]
     """
     task = get_env_task(env_id)
     if not segments:

@@ -18,7 +18,15 @@ CHUNK = 1 << 20
 
 
 def sha256_of(path: str | os.PathLike) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB chunks."""
+    """Hex SHA-256 of a file, read in 1 MiB chunks.
+
+    Examples:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "data.bin"
+        >>> _ = path.write_bytes(b"abc")
+        >>> sha256_of(path)
+        'ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad'
+    """
     digest = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(CHUNK), b""):
@@ -52,6 +60,25 @@ def download(
     file renamed into place, so ``destination`` never holds a partial or corrupt file. A failed integrity check
     deletes the partial file. Network failures raise :class:`~spoil_torchrl.data.DatasetError` naming the URL and
     the path where the file can be placed by hand.
+
+    Examples:
+        A ``file://`` URL stands in for a server here; a second call finds the file and fetches nothing:
+
+        >>> import tempfile
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> source = folder / "remote.hdf5"
+        >>> _ = source.write_bytes(b"dataset bytes")
+        >>> url, digest = source.as_uri(), sha256_of(source)
+        >>> path = download(url, folder / "cache" / "data.hdf5", sha256=digest, progress=False)
+        >>> path.relative_to(folder).as_posix(), path.read_bytes()
+        ('cache/data.hdf5', b'dataset bytes')
+        >>> download(url, path, sha256=digest, progress=False) == path
+        True
+        >>> download(url, folder / "other.hdf5", sha256="0" * 64, progress=False)
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: file://.../remote.hdf5: SHA-256 mismatch; the download was \
+deleted, run again to fetch it anew
     """
     destination = Path(destination)
     if destination.exists():

@@ -24,7 +24,20 @@ DSRL_KEYS = ("observations", "next_observations", "actions", "rewards", "costs",
 
 
 class DatasetError(ValueError):
-    """A dataset that cannot be used as it is (missing keys, bad shapes, non-finite values, ...)."""
+    """A dataset that cannot be used as it is (missing keys, bad shapes, non-finite values, ...).
+
+    Its message names the dataset and the problem in one line, so a recipe can report it as it is.
+
+    Examples:
+        >>> from spoil_torchrl.data import load_episodes
+        >>> try:
+        ...     load_episodes("file:/no/such/data.hdf5")
+        ... except DatasetError as err:
+        ...     print(err)
+        /no/such/data.hdf5: no such file
+        >>> issubclass(DatasetError, ValueError)
+        True
+    """
 
 
 def _tensor(x) -> torch.Tensor:

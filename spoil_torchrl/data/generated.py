@@ -151,7 +151,19 @@ DEFAULT_DATASET = "point-circle1-mixed"
 
 
 def get_generated(name: str) -> GeneratedDataset:
-    """The recipe of a named generated dataset; an unknown name raises with the known ones."""
+    """The recipe of a named generated dataset; an unknown name raises with the known ones.
+
+    Examples:
+        >>> spec = get_generated("point-circle1-controlled")
+        >>> spec.env_id, spec.episodes, [segment.label for segment in spec.segments]
+        ('SafetyPointCircle1-v0', 2000, ['safe-high', 'safe-medium', 'unsafe-high', 'unsafe-medium'])
+        >>> spec.segments[0]
+        Segment(label='safe-high', policy='zoo:safe-high', episodes=500)
+        >>> get_generated("point-circle3")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.tasks.UnknownDatasetError: unknown generated dataset 'point-circle3'; known: ...
+    """
     if name not in GENERATED_DATASETS:
         raise UnknownDatasetError(
             f"unknown generated dataset {name!r}; known: {', '.join(GENERATED_DATASETS)}"
@@ -160,13 +172,31 @@ def get_generated(name: str) -> GeneratedDataset:
 
 
 def generated_data_dir() -> Path:
-    """``$SPOIL_TORCHRL_DATA_DIR`` if set, else ``~/.cache/spoil_torchrl/generated``."""
+    """``$SPOIL_TORCHRL_DATA_DIR`` if set, else ``~/.cache/spoil_torchrl/generated``.
+
+    Examples:
+        >>> from unittest import mock
+        >>> with mock.patch.dict(os.environ, {"SPOIL_TORCHRL_DATA_DIR": "/data/generated"}):
+        ...     generated_data_dir()
+        PosixPath('/data/generated')
+        >>> with mock.patch.dict(os.environ):
+        ...     _ = os.environ.pop("SPOIL_TORCHRL_DATA_DIR", None)
+        ...     generated_data_dir() == Path.home() / ".cache" / "spoil_torchrl" / "generated"
+        True
+    """
     default = Path.home() / ".cache" / "spoil_torchrl" / "generated"
     return Path(os.environ.get("SPOIL_TORCHRL_DATA_DIR", default)).expanduser()
 
 
 def generated_path(name: str) -> Path:
-    """Where the dataset ``name`` is cached (it may not exist yet)."""
+    """Where the dataset ``name`` is cached (it may not exist yet).
+
+    Examples:
+        >>> from unittest import mock
+        >>> with mock.patch.dict(os.environ, {"SPOIL_TORCHRL_DATA_DIR": "/data/generated"}):
+        ...     generated_path(DEFAULT_DATASET)
+        PosixPath('/data/generated/point-circle1-mixed.hdf5')
+    """
     return generated_data_dir() / f"{name}.hdf5"
 
 

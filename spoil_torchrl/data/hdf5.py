@@ -116,6 +116,20 @@ def read_dsrl_file(
     buffers are memory-mapped files there instead of RAM, for datasets larger than memory. Every problem with
     the file is a :class:`~spoil_torchrl.data.DatasetError` naming it: missing file, empty file, not HDF5,
     truncated, missing key, ragged arrays, NaN / inf, wrong dimensions.
+
+    Examples:
+        >>> arrays = {k: np.zeros((5, 3), np.float32) for k in DSRL_KEYS[:3]}  # observations, actions
+        >>> arrays |= {k: np.zeros(5, np.float32) for k in DSRL_KEYS[3:]}  # rewards, costs, flags
+        >>> arrays["terminals"][1] = arrays["timeouts"][4] = 1  # a terminal episode, then a cut one
+        >>> path = write_dsrl_file(Path(tempfile.mkdtemp()) / "demo.hdf5", arrays)
+        >>> td = read_dsrl_file(path, observation_dim=3, action_dim=3)
+        >>> td.batch_size, td["episode"].tolist(), td["next", "terminated"].squeeze(-1).tolist()
+        (torch.Size([5]), [0, 0, 1, 1, 1], [False, True, False, False, False])
+        >>> read_dsrl_file(path, observation_dim=28)
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.data.episodes.DatasetError: .../demo.hdf5: observation dimension is 3, but the task \
+expects 28
     """
     path = Path(path)
     mm = None if memmap_dir is None else Path(memmap_dir)
@@ -152,7 +166,17 @@ def read_dsrl_file(
 
 
 def read_metadata(path: str | os.PathLike) -> dict:
-    """The JSON metadata this project writes into its own files (``{}`` for plain DSRL files)."""
+    """The JSON metadata this project writes into its own files (``{}`` for plain DSRL files).
+
+    Examples:
+        >>> arrays = {k: np.zeros((2, 3), np.float32) for k in DSRL_KEYS[:3]}  # observations, actions
+        >>> arrays |= {k: np.array([0, 1], np.float32) for k in DSRL_KEYS[3:]}  # one episode of two steps
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> ours = write_dsrl_file(folder / "ours.hdf5", arrays, metadata={"env_id": "SafetyPointCircle1-v0"})
+        >>> plain = write_dsrl_file(folder / "plain.hdf5", arrays)  # as a DSRL download: no metadata
+        >>> read_metadata(ours), read_metadata(plain)
+        ({'env_id': 'SafetyPointCircle1-v0'}, {})
+    """
     path = Path(path)
     with _open(path) as f:
         return _metadata(f, path)
@@ -188,8 +212,20 @@ def write_dsrl_file(
     atomically: a killed writer leaves no file that loads.
 
     The data go to a unique ``<path>.<random>.tmp`` first and are renamed into place once complete.
-    ``metadata`` is stored as a JSON attribute. Examples are in the tests; the collection pipeline
+    ``metadata`` is stored as a JSON attribute. The collection pipeline
     (:func:`spoil_torchrl.data.collect.collect`) writes its datasets through here.
+
+    Examples:
+        >>> n = 4  # two episodes of two steps, back to back
+        >>> arrays = {"observations": np.zeros((n, 3), np.float32), "next_observations": np.ones((n, 3)),
+        ...           "actions": np.zeros((n, 2), np.float32), "rewards": np.ones(n, np.float32),
+        ...           "costs": np.zeros(n, np.float32), "terminals": np.zeros(n, bool),
+        ...           "timeouts": np.array([0, 1, 0, 1], bool)}
+        >>> path = write_dsrl_file(Path(tempfile.mkdtemp()) / "demo.hdf5", arrays, metadata={"seed": 0})
+        >>> sorted(p.name for p in path.parent.iterdir())  # no temporary file is left
+        ['demo.hdf5']
+        >>> read_dsrl_file(path)["episode"].tolist(), read_metadata(path)
+        ([0, 0, 1, 1], {'seed': 0})
     """
     path = Path(path)
     missing = [k for k in DSRL_KEYS if k not in arrays]

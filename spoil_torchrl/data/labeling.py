@@ -56,7 +56,16 @@ def _as_stats(data: TensorDict) -> TensorDict:
 
 
 def ilsp_return_threshold(stats: TensorDict, cost_threshold: float, return_quantile: float = 0.9) -> float:
-    """The ``return_quantile`` quantile (linear interpolation) of the safe episodes' returns (F.1)."""
+    """The ``return_quantile`` quantile (linear interpolation) of the safe episodes' returns (F.1).
+
+    Examples:
+        >>> stats = TensorDict({"return": torch.tensor([1.0, 2.0, 3.0, 10.0]),
+        ...                     "cost": torch.tensor([0.0, 5.0, 0.0, 50.0])}, [4])
+        >>> ilsp_return_threshold(stats, cost_threshold=10, return_quantile=0.5)  # median of 1, 2, 3
+        2.0
+        >>> round(ilsp_return_threshold(stats, cost_threshold=10), 4)  # the default 0.9 quantile
+        2.8
+    """
     if not 0.0 <= return_quantile <= 1.0:
         raise ValueError(f"return_quantile must lie in [0, 1], got {return_quantile}")
     safe_returns = stats["return"][stats["cost"] <= cost_threshold]

@@ -30,7 +30,14 @@ SCHEMES = ("file", "dsrl", "generated", "minari")
 
 
 def dsrl_cache_dir() -> Path:
-    """``$DSRL_DATASET_DIR`` if set, else ``~/.dsrl/datasets`` (where the ``dsrl`` package caches files)."""
+    """``$DSRL_DATASET_DIR`` if set, else ``~/.dsrl/datasets`` (where the ``dsrl`` package caches files).
+
+    Examples:
+        >>> from unittest import mock
+        >>> with mock.patch.dict(os.environ, {"DSRL_DATASET_DIR": "/data/dsrl"}):
+        ...     dsrl_cache_dir() / get_dsrl_dataset("OfflineCarCircle-v0").file_name
+        PosixPath('/data/dsrl/SafetyCarCircle-v0-100-1450.hdf5')
+    """
     return Path(os.environ.get("DSRL_DATASET_DIR", Path.home() / ".dsrl" / "datasets")).expanduser()
 
 
@@ -39,7 +46,22 @@ def _check_hdf5(path: Path) -> None:
 
 
 def fetch_dsrl(dataset: DSRLDataset, *, progress: bool = True) -> Path:
-    """The local path of a DSRL dataset's file, downloading it into :func:`dsrl_cache_dir` if needed."""
+    """The local path of a DSRL dataset's file, downloading it into :func:`dsrl_cache_dir` if needed.
+
+    A file already in the cache (e.g. copied there by hand on a machine without network access) is used as it
+    is.
+
+    Examples:
+        >>> import tempfile
+        >>> from unittest import mock
+        >>> dataset = get_dsrl_dataset("OfflineCarCircle-v0")
+        >>> cache = Path(tempfile.mkdtemp())
+        >>> _ = (cache / dataset.file_name).write_bytes(b"")  # stands in for the file placed by hand
+        >>> with mock.patch.dict(os.environ, {"DSRL_DATASET_DIR": str(cache)}):
+        ...     path = fetch_dsrl(dataset)  # found: nothing is downloaded
+        >>> path == cache / "SafetyCarCircle-v0-100-1450.hdf5"
+        True
+    """
     destination = dsrl_cache_dir() / dataset.file_name
     return download(dataset.url, destination, validate=_check_hdf5, progress=progress)
 
@@ -85,6 +107,20 @@ def load_episodes(
 
     For DSRL datasets the observation / action sizes are checked against the task table. Minari datasets are
     read into RAM (``memmap_dir`` does not apply to them).
+
+    Examples:
+        >>> import tempfile
+        >>> import numpy as np
+        >>> from spoil_torchrl.data import DSRL_KEYS, write_dsrl_file
+        >>> arrays = {k: np.zeros((6, 3), np.float32) for k in DSRL_KEYS[:3]}  # observations, actions
+        >>> arrays |= {k: np.zeros(6, np.float32) for k in DSRL_KEYS[3:]}  # rewards, costs, flags
+        >>> arrays["timeouts"][[2, 5]] = 1  # two episodes of three steps
+        >>> path = write_dsrl_file(Path(tempfile.mkdtemp()) / "demo.hdf5", arrays)
+        >>> episodes = load_episodes(f"file:{path}")
+        >>> episodes.batch_size, episodes["episode"].tolist()
+        (torch.Size([6]), [0, 0, 0, 1, 1, 1])
+        >>> episodes["observation"].dtype, episodes["next", "reward"].shape, episodes["is_init"].sum().item()
+        (torch.float32, torch.Size([6, 1]), 2)
     """
     scheme, rest = parse_source(source)
     if scheme == "file":
@@ -112,7 +148,19 @@ def read_source_metadata(source: str) -> dict:
     """The metadata a source carries: this project's JSON metadata of a ``file:`` / ``generated:`` HDF5 file
     (``{}`` for a plain DSRL file), the ``spoil_torchrl`` entry of a ``minari:`` dataset (see
     :func:`~spoil_torchrl.data.minari_io.read_minari_metadata`), ``{}`` for ``dsrl:`` (the task table has its
-    constants). The data must have been loaded (or made) first."""
+    constants). The data must have been loaded (or made) first.
+
+    Examples:
+        >>> import tempfile
+        >>> import numpy as np
+        >>> from spoil_torchrl.data import DSRL_KEYS, write_dsrl_file
+        >>> arrays = {k: np.zeros((2, 3), np.float32) for k in DSRL_KEYS[:3]}  # observations, actions
+        >>> arrays |= {k: np.array([0, 1], np.float32) for k in DSRL_KEYS[3:]}  # one episode of two steps
+        >>> path = Path(tempfile.mkdtemp()) / "demo.hdf5"
+        >>> path = write_dsrl_file(path, arrays, metadata={"cost_threshold": 25})
+        >>> read_source_metadata(f"file:{path}"), read_source_metadata("dsrl:OfflineCarCircle-v0")
+        ({'cost_threshold': 25}, {})
+    """
     scheme, rest = parse_source(source)
     if scheme == "file":
         return read_metadata(Path(rest).expanduser())

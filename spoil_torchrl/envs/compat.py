@@ -116,7 +116,15 @@ def needed_patches() -> list[Patch]:
 
 
 def applied_patches() -> list[str]:
-    """The names of the patches :func:`import_safety_gymnasium` applied in this process."""
+    """The names of the patches :func:`import_safety_gymnasium` applied in this process.
+
+    Examples:
+        >>> _ = import_safety_gymnasium()
+        >>> applied_patches() == [patch.name for patch in needed_patches()]  # those this stack needs
+        True
+        >>> "hashable-colours" in applied_patches()  # needed from Python 3.11 on
+        True
+    """
     return list(_APPLIED)
 
 
@@ -124,6 +132,16 @@ def import_safety_gymnasium() -> ModuleType:
     """``import safety_gymnasium`` with the patches the installed stack needs (see module docstring).
 
     Raises ``ImportError`` with install instructions when the package is missing.
+
+    Examples:
+        >>> safety_gymnasium = import_safety_gymnasium()
+        >>> env = safety_gymnasium.make("SafetyHopperVelocity-v1")
+        >>> obs, info = env.reset(seed=0)
+        >>> obs, reward, cost, terminated, truncated, info = env.step(env.action_space.sample())  # six values
+        >>> obs.shape, type(cost)
+        ((11,), <class 'float'>)
+        >>> import_safety_gymnasium() is safety_gymnasium  # imported and patched once per process
+        True
     """
     if _IMPORTED:
         return _IMPORTED[0]

@@ -23,7 +23,15 @@ if TYPE_CHECKING:
 class CostInInfo(gymnasium.Wrapper):
     """Turns Safety-Gymnasium's 6-tuple ``step`` into gymnasium's 5-tuple, with the cost as ``info["cost"]``
     (a float32 array of shape ``(1,)``, the shape of TorchRL's reward). Actions are passed as float64 arrays
-    (safety-gymnasium's ``step(list)`` fails under NumPy 2)."""
+    (safety-gymnasium's ``step(list)`` fails under NumPy 2).
+
+    Examples:
+        >>> env = CostInInfo(import_safety_gymnasium().make("SafetyHopperVelocity-v1"))
+        >>> obs, info = env.reset(seed=0)
+        >>> obs, reward, terminated, truncated, info = env.step([0.0, 0.0, 0.0])  # five values, not six
+        >>> info["cost"], obs.shape
+        (array([0.], dtype=float32), (11,))
+    """
 
     def step(self, action):
         obs, reward, cost, terminated, truncated, info = self.env.step(np.asarray(action, dtype=np.float64))
@@ -59,6 +67,15 @@ def make_safety_gymnasium(env_id: str, *, fast_reset: bool = True, **kwargs) -> 
     ``fast_reset`` switches the skybox patch on or off for the environments built from now on.
 
     Use it for NumPy-speed loops (collection, evaluation); :func:`make_env` wraps it for TorchRL.
+
+    Examples:
+        >>> env = make_safety_gymnasium("SafetyPointCircle1-v0")
+        >>> obs, info = env.reset(seed=0)
+        >>> obs.shape, info["cost"]
+        ((28,), array([0.], dtype=float32))
+        >>> obs, reward, terminated, truncated, info = env.step(np.zeros(2))
+        >>> float(info["cost"][0]), terminated, truncated  # the agent starts inside the safe band
+        (0.0, False, False)
     """
     task = get_env_task(env_id)
     safety_gymnasium = import_safety_gymnasium()

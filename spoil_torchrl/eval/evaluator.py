@@ -136,6 +136,19 @@ class Evaluator:
             costs (:mod:`spoil_torchrl.envs.cost_components`): each evaluation also reports ``cost_<name>`` (the
             mean episode cost on that constraint) and ``feasible_all`` (the share of episodes within every
             constraint's limit).
+
+    Examples:
+        An untrained policy in SafetyHopperVelocity-v1 (it falls within a few steps, which ends the episode):
+
+        >>> from spoil_torchrl.modules import make_actor
+        >>> evaluator = Evaluator("SafetyHopperVelocity-v1", cost_threshold=25.0, return_range=(0.0, 1600.0),
+        ...                       episodes=3, num_envs=3)
+        >>> policy = make_actor(11, 3, hidden_cells=(8,))
+        >>> result = evaluator(policy, step=1000)
+        >>> result["step"], result["cost"], len(result["episodes"]["return"])  # means, and per episode
+        (1000, 0.0, 3)
+        >>> evaluator(policy)["return"] == result["return"]  # the same episodes for the same policy
+        True
     """
 
     def __init__(

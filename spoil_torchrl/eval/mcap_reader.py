@@ -62,6 +62,23 @@ class Rollouts:
         skipped: episodes left out: steps without a summary (in progress when the writer stopped), and in a
             file that was not finished, episodes whose steps do not match their summary.
         stop_reason: why reading stopped before the end of a file that was not finished, else ``None``.
+
+    Examples:
+        >>> import tempfile
+        >>> from spoil_torchrl.eval import RolloutWriter
+        >>> path = Path(tempfile.mkdtemp()) / "rollouts.mcap"
+        >>> with RolloutWriter(path, cost_threshold=1.0) as writer:
+        ...     for length in (3, 4):
+        ...         for t in range(length):
+        ...             writer.add_step([0.0, 1.0], [0.5], reward=1.0, cost=0.0, evaluation_step=100)
+        ...         _ = writer.end_episode()
+        >>> rollouts = read_rollouts(path)
+        >>> rollouts.steps.batch_size, rollouts.steps["mask"].sum(-1).tolist()  # padded to the longest
+        (torch.Size([2, 4]), [3, 4])
+        >>> rollouts.episodes["length"].tolist(), rollouts.episodes["return"].tolist()
+        ([3, 4], [3.0, 4.0])
+        >>> rollouts.finished, rollouts.skipped, rollouts.stop_reason
+        (True, 0, None)
     """
 
     steps: TensorDict
@@ -155,7 +172,25 @@ def read_rollouts(
             a finished file) an episode whose steps do not match its summary's length.
 
     Examples:
-        See :class:`~spoil_torchrl.eval.RolloutWriter`.
+        A copy of a file taken while its writer was in the middle of the third episode (as a killed run leaves
+        it) gives the two complete episodes; writing and reading a whole file is shown at
+        :class:`~spoil_torchrl.eval.RolloutWriter`.
+
+        >>> import tempfile
+        >>> from spoil_torchrl.eval import RolloutWriter
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> with RolloutWriter(folder / "rollouts.mcap", cost_threshold=1.0) as writer:
+        ...     for episode in range(3):
+        ...         for t in range(4):
+        ...             writer.add_step([0.0, 1.0], [0.5], reward=1.0, cost=float(t == 3), evaluation_step=5)
+        ...             if (episode, t) == (2, 1):  # a snapshot as a killed writer would leave the file
+        ...                 _ = (folder / "killed.mcap").write_bytes((folder / "rollouts.mcap").read_bytes())
+        ...         _ = writer.end_episode()
+        >>> read_rollouts(folder / "rollouts.mcap").episodes["cost"].tolist()
+        [1.0, 1.0, 1.0]
+        >>> salvaged = read_rollouts(folder / "killed.mcap")
+        >>> salvaged.finished, salvaged.episodes["return"].tolist(), salvaged.stop_reason
+        (False, [4.0, 4.0], 'the file ends before the MCAP footer (the writer did not finish it)')
     """
     path = Path(path)
     _check_magic(path)

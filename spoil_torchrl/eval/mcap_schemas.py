@@ -111,7 +111,20 @@ SUMMARY_FLOATS = ("return", "cost", "feasible_return", "strict_feasible_return",
 
 
 class RolloutFileError(ValueError):
-    """A rollout file that cannot be read: missing, not MCAP, or with messages that do not follow the schemas."""
+    """A rollout file that cannot be read: missing, not MCAP, or with messages that do not follow the schemas.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from spoil_torchrl.eval import read_rollouts
+        >>> path = Path(tempfile.mkdtemp()) / "notes.mcap"
+        >>> _ = path.write_text("not a rollout file")
+        >>> try:
+        ...     read_rollouts(path)
+        ... except RolloutFileError as err:
+        ...     print(str(err).removeprefix(f"{path}: "))
+        not an MCAP file (it does not start with the MCAP magic bytes)
+    """
 
 
 def finite(x: float) -> float | None:

@@ -279,7 +279,16 @@ def mean_of_last(evaluations: Sequence[float] | torch.Tensor, last: int = 10) ->
 
 
 class SeedAggregate(NamedTuple):
-    """The paper's aggregate of one metric: ``mean`` +- ``stderr`` over seeds of the per-seed ``per_seed``."""
+    """The paper's aggregate of one metric: ``mean`` +- ``stderr`` over seeds of the per-seed ``per_seed``.
+
+    Examples:
+        >>> agg = aggregate_over_seeds([[0.0, 2.0], [0.0, 4.0]], last=1)  # two seeds, two evaluations each
+        >>> agg.per_seed
+        (2.0, 4.0)
+        >>> mean, stderr, _ = agg
+        >>> f"{mean:.2f} +- {stderr:.2f} over {len(agg.per_seed)} seeds"
+        '3.00 +- 1.00 over 2 seeds'
+    """
 
     mean: float
     stderr: float

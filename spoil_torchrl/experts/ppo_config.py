@@ -39,6 +39,20 @@ class PPOConfig:
     ``num_envs`` > 1 collects each batch from that many environments stepped in lockstep
     (:class:`~spoil_torchrl.experts.lockstep.LockstepCollector`: several times the frames per second of one
     TorchRL environment); ``frames_per_batch`` must split evenly over them.
+
+    Examples:
+        >>> config = PPOConfig(total_frames=800_000, lagrangian=True, num_envs=8, hidden_cells=[64, 64])
+        >>> config.cost_limit, config.frames_per_batch // config.num_envs, config.hidden_cells
+        (25.0, 1250, (64, 64))
+        >>> PPOConfig(frames_per_batch=2000, minibatch_size=4000)
+        Traceback (most recent call last):
+        ...
+        ValueError: ppo.minibatch_size = 4000 is larger than ppo.frames_per_batch = 2000
+        >>> PPOConfig(lagrangian=True, cost_penalty=1.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: ppo.cost_penalty = 1.0 with ppo.lagrangian=true: PPO-Lagrangian learns its multiplier; a \
+fixed penalty needs ppo.lagrangian=false
     """
 
     total_frames: int = 1_000_000

@@ -112,7 +112,18 @@ def with_observation_norm(actor: ProbabilisticActor, normalizer: ObservationNorm
 
 
 def observation_normalizer_of(actor: ProbabilisticActor) -> ObservationNormalizer | None:
-    """The :class:`ObservationNormalizer` inside ``actor`` (see :func:`with_observation_norm`), or ``None``."""
+    """The :class:`ObservationNormalizer` inside ``actor`` (see :func:`with_observation_norm`), or ``None``.
+
+    Examples:
+        >>> from spoil_torchrl.modules import make_actor
+        >>> actor = make_actor(2, 1, hidden_cells=(4,))
+        >>> observation_normalizer_of(actor) is None  # reads its observations as they come
+        True
+        >>> norm = ObservationNormalizer(torch.tensor([1.0, 2.0]), torch.tensor([2.0, 4.0]))
+        >>> found = observation_normalizer_of(with_observation_norm(actor, norm))
+        >>> found is norm, found.loc.tolist()
+        (True, [1.0, 2.0])
+    """
     first = actor.module[0].module
     if isinstance(first, nn.Sequential) and isinstance(first[0], ObservationNormalizer):
         return first[0]

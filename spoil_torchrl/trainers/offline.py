@@ -38,6 +38,20 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM,)) -> None:
     next chunk boundary (at most ``steps_per_batch`` steps later), from its own hook, so the interrupt never
     lands inside library code and the caller handles it like Ctrl-C; other loops (an expert's training) ask
     :func:`stop_requested` at their own boundaries. A second signal interrupts at once.
+
+    Examples:
+        >>> previous = signal.getsignal(signal.SIGUSR1)
+        >>> stop_on_signals((signal.SIGUSR1,))  # at the start of a run (default: SIGTERM)
+        >>> signal.raise_signal(signal.SIGUSR1)  # as `kill -USR1 <pid>` would
+        >>> stop_requested()
+        'signal SIGUSR1'
+        >>> try:
+        ...     raise_if_stopped()  # what offline_trainer does after every chunk of steps
+        ... except KeyboardInterrupt as stop:
+        ...     print("training stopped:", stop)
+        training stopped: signal SIGUSR1
+        >>> import spoil_torchrl.trainers.offline as offline  # undo, for the examples that follow:
+        >>> offline._stop_reason = None; _ = signal.signal(signal.SIGUSR1, previous)
     """
 
     def handler(signum, frame):
@@ -118,7 +132,23 @@ class SampleBuffers:
     ``sample`` is e.g. :meth:`spoil_torchrl.data.DualDemoBuffers.sample` (one batch per role). The Trainer runs
     ``optim_steps_per_batch`` steps per chunk; after as many samples as the chunk stands for (fewer for a short
     last chunk) the hook raises ``StopIteration``, which ends the chunk's optimisation loop, so exactly
-    ``total_steps`` steps run.
+    ``total_steps`` steps run. :func:`offline_trainer` registers it as
+    ``trainer.register_op("process_optim_batch", SampleBuffers(sample))``.
+
+    Examples:
+        >>> drawn = []
+        >>> hook = SampleBuffers(lambda: TensorDict({"draw": torch.tensor([len(drawn)])}, [1]))
+        >>> chunk = TensorDict(batch_size=[2])  # the placeholder of two optimisation steps
+        >>> for _ in range(2):
+        ...     drawn.append(hook(chunk)["draw"].item())
+        >>> drawn
+        [0, 1]
+        >>> hook(chunk)  # the chunk's steps are done
+        Traceback (most recent call last):
+        ...
+        StopIteration
+        >>> hook(TensorDict(batch_size=[1]))["draw"].tolist()  # the next chunk starts afresh
+        [2]
     """
 
     def __init__(self, sample: Callable[[], TensorDictBase]) -> None:
@@ -213,6 +243,24 @@ class MultiLossStepper(OptimizationStepper):
         losses: name -> LossModule.
         optimizers: every optimiser over the losses' parameters (a :class:`StepEvery` steps less often).
         schedulers: LR schedulers stepped after the optimisers.
+
+    Examples:
+        One step by hand (:func:`offline_trainer` runs many, one per sampled batch):
+
+        >>> from spoil_torchrl.modules import make_actor
+        >>> from spoil_torchrl.objectives import WeightedBCLoss
+        >>> safe = WeightedBCLoss(make_actor(3, 2, hidden_cells=(8,)), role="safe")
+        >>> performant = WeightedBCLoss(make_actor(3, 2, hidden_cells=(8,)), role="performant")
+        >>> optimizers = [torch.optim.Adam(loss.parameters(), lr=1e-3) for loss in (safe, performant)]
+        >>> stepper = MultiLossStepper({"safe": safe, "perf": performant}, optimizers)
+        >>> def role():  # a batch of 16 transitions
+        ...     actions = torch.rand(16, 2) * 2 - 1
+        ...     return TensorDict({"observation": torch.randn(16, 3), "action": actions}, [16])
+        >>> out = stepper.step(None, TensorDict({"safe": role(), "performant": role()}, []))
+        >>> sorted(key for key in out.keys() if "loss" in key)
+        ['perf.loss_actor', 'safe.loss_actor']
+        >>> [optimizer.state_dict()["state"][0]["step"].item() for optimizer in stepper.optimizers]
+        [1.0, 1.0]
     """
 
     def __init__(

@@ -41,7 +41,16 @@ ZOO_DIR = Path(__file__).parent  #: spoil_torchrl/zoo/<env_id>/<name>.pt
 
 
 class PolicyFileError(ValueError):
-    """A policy file that cannot be loaded (missing, not a checkpoint, wrong task or sizes)."""
+    """A policy file that cannot be loaded (missing, not a checkpoint, wrong task or sizes).
+
+    Examples:
+        >>> path = zoo_policy("SafetyPointCircle1-v0", "safe-high")
+        >>> try:
+        ...     load_policy(path, env_id="SafetyHopperVelocity-v1")
+        ... except PolicyFileError as err:
+        ...     print(str(err).split(": ", 1)[1])
+        a policy for SafetyPointCircle1-v0, not SafetyHopperVelocity-v1
+    """
 
 
 def _linear_weights(state_dict: dict) -> list[torch.Tensor]:
@@ -126,6 +135,16 @@ def load_policy(path: str | os.PathLike, *, env_id: str | None = None) -> tuple[
     Raises:
         PolicyFileError: missing or unreadable file, damaged weights (checksum mismatch, files written by
             :func:`save_policy`; non-finite values, any file), or a policy for another task.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> path = zoo_policy("SafetyPointCircle1-v0", "safe-high")
+        >>> actor, meta = load_policy(path, env_id="SafetyPointCircle1-v0")
+        >>> meta["env_id"], meta["observation_dim"], meta["action_dim"], meta["hidden_cells"]
+        ('SafetyPointCircle1-v0', 28, 2, [64, 64])
+        >>> action = actor(TensorDict({"observation": torch.zeros(5, 28)}, [5]))["action"]
+        >>> action.shape, bool(action.abs().max() <= 1)  # a batch of actions in the task's bounds
+        (torch.Size([5, 2]), True)
     """
     path = Path(path)
     if not path.is_file():
@@ -191,6 +210,22 @@ def export_checkpoint(
     """Turn a training checkpoint (e.g. ``runs/experts/.../ckpt_000700000.pt``) into the zoo policy ``name``.
 
     The file's own statistics (frames, batch return / cost) are kept in ``info`` with the extra ``info``.
+
+    Examples:
+        A checkpoint as :func:`~spoil_torchrl.experts.train_ppo` writes it, exported into a scratch zoo (the
+        committed one is ``spoil_torchrl/zoo/``, :data:`ZOO_DIR`):
+
+        >>> import tempfile
+        >>> from unittest import mock
+        >>> runs = Path(tempfile.mkdtemp())
+        >>> actor = make_actor(28, 2, hidden_cells=(8,))
+        >>> torch.save({"actor": actor.state_dict(), "frames": 700_000}, runs / "ckpt_000700000.pt")
+        >>> with mock.patch(f"{__name__}.ZOO_DIR", runs / "zoo"):
+        ...     path = export_checkpoint(runs / "ckpt_000700000.pt", "SafetyPointCircle1-v0", "ppo-0700k")
+        >>> path.relative_to(runs).as_posix()
+        'zoo/SafetyPointCircle1-v0/ppo-0700k.pt'
+        >>> load_policy(path)[1]["info"]
+        {'frames': 700000, 'exported_from': 'ckpt_000700000.pt'}
     """
     actor, meta = load_policy(checkpoint, env_id=env_id)
     record = {**meta["info"], **(info or {}), "exported_from": Path(checkpoint).name}
@@ -209,7 +244,20 @@ def zoo_names(env_id: str) -> list[str]:
 
 
 def zoo_policy(env_id: str, name: str) -> Path:
-    """The path of the committed policy ``name`` for ``env_id``; raises with the available names."""
+    """The path of the committed policy ``name`` for ``env_id``; raises with the available names.
+
+    Examples:
+        >>> path = zoo_policy("SafetyHopperVelocity-v1", "safe-high")
+        >>> path.relative_to(ZOO_DIR).as_posix()
+        'SafetyHopperVelocity-v1/safe-high.pt'
+        >>> load_policy(path, env_id="SafetyHopperVelocity-v1")[1]["action_dim"]
+        3
+        >>> zoo_policy("SafetyHopperVelocity-v1", "expert")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.zoo.policy_files.PolicyFileError: no committed policy 'expert' for \
+SafetyHopperVelocity-v1; available: ...
+    """
     path = ZOO_DIR / env_id / f"{name}.pt"
     if not path.is_file():
         available = zoo_names(env_id)
