@@ -20,9 +20,11 @@ each seed contributes its aggregate (the mean of its last evaluations, as the pa
 mean ± standard error over seeds of the normalised feasible return and the normalised cost, and marks safe
 results (mean normalised cost <= 1) in bold, as the paper's Table 1 / Table L. Algorithms are listed in the
 paper's order. Runs that did not finish (failed, interrupted, killed, still running) are listed as skipped, with
-the reason. A seed found twice (unless ``--latest``: the newest run counts), or runs of one dataset made with
-different training budgets (the ``train`` section of the ``config.yaml`` beside each ``results.json``), stop
-the report with an error naming the runs. Each table names the software stack its runs were made on
+the reason, as is a ``results.json`` that is not a finished run's results (not a JSON object, without a
+``status``, finished without an ``aggregate``: an expert's run, a file written by hand). A seed found twice
+(unless ``--latest``: the newest run counts), or runs of one dataset made with different training budgets
+(the ``train`` section of the ``config.yaml`` beside each ``results.json``), stop the report with an error
+naming the runs. Each table names the software stack its runs were made on
 (``results.json``'s ``stack``), and the report warns when one dataset's runs come from several stacks, a
 run's data were made on another stack than the run (their simulators differ), or a run was resumed on
 another machine than the one that started it (``resumed_elsewhere``).
@@ -44,7 +46,7 @@ import torch
 
 from spoil_torchrl.eval import mean_stderr
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
-from spoil_torchrl.runs.experiments import finished_results, train_section
+from spoil_torchrl.runs.experiments import finished_results, incomplete, train_section
 from spoil_torchrl.stack import stack_label, stack_name
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
@@ -55,14 +57,21 @@ def load_runs(
 ) -> dict[tuple[str, str], list[dict]]:
     """``(dataset, algo) -> [results of each finished seed]``, sorted by seed.
 
-    Runs that are not finished (failed, interrupted, killed, still training: :func:`run_status`) are left out
-    and appended to ``skipped`` as ``(path, reason)``. A seed found twice is an error, unless ``latest``: then
-    the run whose ``results.json`` was written last counts and the others are skipped.
+    Runs that are not finished (failed, interrupted, killed, still training: :func:`run_status`), and
+    ``results.json`` files that are not a finished run's results (not a JSON object, no ``status``, no
+    ``aggregate`` or a metric of it: :func:`~spoil_torchrl.runs.experiments.incomplete`), are left out and
+    appended to ``skipped`` as ``(path, reason)``. A seed found twice is an error, unless ``latest``: then the
+    run whose ``results.json`` was written last counts and the others are skipped.
     """
     runs: dict[tuple[str, str], list[dict]] = defaultdict(list)
     found: dict[tuple[str, str, int], list[tuple[float, Path, dict]]] = defaultdict(list)
     skipped = [] if skipped is None else skipped
     for path, results in finished_results(folders, skipped):
+        problem = incomplete(results)  # e.g. an expert's run, or a file written by hand
+        lacking = [metric for metric in METRICS if problem is None and metric not in results["aggregate"]]
+        if problem is not None or lacking:
+            skipped.append((path, problem or f"finished, but its aggregate has no {', '.join(lacking)}"))
+            continue
         key = (results["dataset"], results["algo"], results["seed"])
         found[key].append((path.stat().st_mtime, path, results))
     _refuse_mixed_data(found)

@@ -7,6 +7,10 @@ lowest-cost one (appendix E.2). Writes ``results.json``, ``results.md`` and thre
 with the optimal routes, Figure 3b's trade-off, Figure A's quality curves) into the Hydra run dir.
 
     python recipes/tabular_gridworld.py seeds=5 grid.layout=along grid.cost_model=transition
+
+The settings are checked before anything is solved
+(:func:`~spoil_torchrl.tabular.settings.check_gridworld_settings`): a value a setting
+cannot take ends the command in one ``error:`` line naming it, with exit status 2.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from spoil_torchrl.eval.tables import mean_stderr
+from spoil_torchrl.runs.outcome import ended_in_one_line
+from spoil_torchrl.runs.settings import check_settings
 from spoil_torchrl.tabular import (
     InfeasibleProblemError,
     evaluate,
@@ -49,6 +55,7 @@ from spoil_torchrl.tabular.gridworld_figures import (
     plot_tradeoff,
 )
 from spoil_torchrl.tabular.protocol import is_feasible, normalise, select_candidate
+from spoil_torchrl.tabular.settings import check_gridworld_settings
 
 log = logging.getLogger(__name__)
 
@@ -309,6 +316,10 @@ def markdown(cfg: DictConfig, summary: dict, references: dict, solvable: dict, r
 @hydra.main(config_path="../configs", config_name="tabular_gridworld", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
+    with ended_in_one_line("recipes/tabular_gridworld.py", run_dir):  # a bad setting: one line, exit status 2
+        settings = OmegaConf.to_container(cfg, resolve=True)
+        check_settings({"progress": settings["progress"]})
+        check_gridworld_settings(settings)
     seeds = seed_list(cfg.seeds)
     start = time.perf_counter()
     results = [run_seed(cfg, seed) for seed in tqdm(seeds, desc="seeds", disable=not cfg.progress)]

@@ -5,6 +5,10 @@ run Algorithm 1 with the library's TorchRL losses on samples (one-hot features),
 and writes ``results.json`` plus TorchRL logger output into the Hydra run directory.
 
     python recipes/tabular_spoildice.py seeds=[0,1,2,3,4] problem.slip=0.1
+
+The settings are checked before anything is built
+(:func:`~spoil_torchrl.tabular.settings.check_tabular_settings`): a value a setting cannot
+take ends the command in one ``error:`` line naming it, with exit status 2.
 """
 
 from __future__ import annotations
@@ -21,9 +25,13 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import get_logger
 
+from spoil_torchrl.runs.outcome import ended_in_one_line
+from spoil_torchrl.runs.settings import check_settings
+from spoil_torchrl.runs.tracking import check_logger_available
 from spoil_torchrl.tabular import evaluate, solve_spoildice, total_variation
 from spoil_torchrl.tabular.neural import TabularTrainingConfig, train_tabular_spoildice
 from spoil_torchrl.tabular.problems import random_dual_demo_problem
+from spoil_torchrl.tabular.settings import check_tabular_settings
 
 log = logging.getLogger(__name__)
 
@@ -91,12 +99,16 @@ def summary_table(results: list[dict]) -> str:
 
 @hydra.main(config_path="../configs", config_name="tabular_spoildice", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    with ended_in_one_line("recipes/tabular_spoildice.py", run_dir):  # a bad setting: one line, exit status 2
+        settings = OmegaConf.to_container(cfg, resolve=True)
+        check_settings({key: settings[key] for key in ("threads", "progress")})
+        check_logger_available(cfg.logger.backend, setting="logger.backend")
+        check_tabular_settings(settings)
     log.info(BANNER)
     torch.set_num_threads(cfg.threads)
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    logger = get_logger(
-        cfg.logger.backend, logger_name=str(run_dir), experiment_name=cfg.logger.experiment_name
-    )
+    backend = None if cfg.logger.backend == "none" else cfg.logger.backend  # none: no logger
+    logger = get_logger(backend, logger_name=str(run_dir), experiment_name=cfg.logger.experiment_name)
     results = [run_seed(cfg, int(seed), logger) for seed in cfg.seeds]
     (run_dir / "results.json").write_text(json.dumps(results, indent=2))
     log.info(summary_table(results))

@@ -14,15 +14,24 @@ Three groups of numbers, all on one fixed subsample of the DICE role's transitio
 * **Support against the truth** (:func:`support_accuracy`): among transitions inside :math:`\\hat{\\mathbb 1}_S`,
   the share with cost > 0; the share of cost > 0 transitions let in; the share kept per source and of D_P.
 
-:func:`explain` turns them into sentences; :func:`explain_run` does so for a run directory
-(``python -m spoil_torchrl.eval.dice_diagnostics runs/...``).
+:func:`explain` turns them into sentences; :func:`explain_run` does so for a run directory. On the command
+line:
+
+    python -m spoil_torchrl.eval.dice_diagnostics RUN_DIR [RUN_DIR ...]
+
+explains each run directory named, and each run under a folder of runs (``docs/results/mixed``). A run that
+cannot be explained (no ``results.json``, an unreadable one, a run that failed or stopped before its first
+evaluation, a method that is not a DICE method) gets one ``error: <run>: <why>`` line on stderr and the others
+go on; in a folder of runs, the finished runs of methods without DICE weights (BC, FBC, ...) get a
+``skipped <run>: ...`` line instead, as they are expected there. Exit status: 0 when every run was explained
+(or skipped so), 1 when one could not be, or none was found to explain, 2 without an argument (the usage).
 """
 
 from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -308,21 +317,110 @@ def explain(diag: Mapping, performant_support: Mapping | None = None) -> str:
     return "\n".join(lines)
 
 
+class NotADiceRun(ValueError):
+    """A finished run without DICE diagnostics: its method does not weight by DICE (BC, FBC, ...)."""
+
+
+def _read_results(run_dir: Path) -> dict:
+    path = run_dir / "results.json"
+    try:
+        results = json.loads(path.read_text())
+    except OSError as err:
+        raise ValueError(f"{run_dir}: results.json cannot be read ({err.strerror})") from None
+    except ValueError as err:
+        raise ValueError(f"{run_dir}: results.json is unreadable ({err})") from None
+    if not isinstance(results, dict):
+        raise ValueError(
+            f"{run_dir}: results.json holds a JSON {type(results).__name__}, not a run's results"
+        )
+    return results
+
+
 def explain_run(run_dir: str | Path) -> str:
-    """:func:`explain` for the final diagnostics stored in a run directory's ``results.json``."""
-    path = Path(run_dir) / "results.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no results.json (not a run directory of recipes/spoildice_dsrl.py)")
-    results = json.loads(path.read_text())
+    """:func:`explain` for the final diagnostics stored in a run directory's ``results.json``.
+
+    Raises:
+        FileNotFoundError: ``run_dir`` has no ``results.json``.
+        NotADiceRun: the run finished, and its method is not a DICE method.
+        ValueError: ``results.json`` is unreadable or not a run's results, the run stopped before its first
+            evaluation (its status and error are named), or its ``dice_diagnostics`` are incomplete.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.exists():
+        raise FileNotFoundError(f"{run_dir}: no such folder")
+    if not (run_dir / "results.json").is_file():
+        raise FileNotFoundError(
+            f"{run_dir}: no results.json (not a run directory of recipes/spoildice_dsrl.py)"
+        )
+    results = _read_results(run_dir)
     diag = results.get("dice_diagnostics")
     if diag is None:
+        status, algo = results.get("status"), results.get("algo")
+        if status == "finished":
+            raise NotADiceRun(f"{run_dir}: no dice_diagnostics ({algo} is not a DICE method)")
+        state = "no status" if status is None else f"status {status}"
+        if results.get("error"):
+            state += f": {results['error']}"
         raise ValueError(
-            f"{path}: no dice_diagnostics ({results.get('algo')} is not a DICE method, or the run "
-            "did not reach its first evaluation)"
+            f"{run_dir}: no dice_diagnostics ({algo} is not a DICE method, or the run did not reach its "
+            f"first evaluation; {state})"
         )
-    return explain(diag, results.get("performant_support"))
+    try:
+        return explain(diag, results.get("performant_support"))
+    except (AttributeError, KeyError, TypeError, ValueError) as err:
+        raise ValueError(
+            f"{run_dir}: its dice_diagnostics are incomplete or malformed ({type(err).__name__}: {err})"
+        ) from None
+
+
+def _run_dirs(arg: str) -> tuple[list[Path], bool]:
+    """The run directories an argument names (itself, or every run under a folder of runs), and whether it
+    is a folder of runs."""
+    path = Path(arg)
+    if path.is_file() and path.name == "results.json":
+        return [path.parent], False
+    if not path.is_dir() or (path / "results.json").exists():
+        return [path], False
+    return sorted({found.parent for found in path.rglob("results.json")}), True
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The command line (see the module's docstring); returns the exit status."""
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python -m spoil_torchrl.eval.dice_diagnostics",
+        description="Explain the DICE weights of finished runs of recipes/spoildice_dsrl.py.",
+    )
+    parser.add_argument(
+        "runs", nargs="+", metavar="RUN_DIR", help="a run directory, or a folder of runs (each is explained)"
+    )
+    args = parser.parse_args(argv)
+    explained, failed = 0, 0
+    for arg in args.runs:
+        run_dirs, folder = _run_dirs(arg)
+        if not run_dirs:
+            print(f"error: {arg}: no results.json in it or under it (not a run directory)", file=sys.stderr)
+            failed += 1
+        for run_dir in run_dirs:
+            try:
+                text = explain_run(run_dir)
+            except NotADiceRun as err:
+                if folder:  # a folder's BC, FBC, ... runs: nothing to explain
+                    print(f"skipped {err}", file=sys.stderr)
+                    continue
+                print(f"error: {err}", file=sys.stderr)
+                failed += 1
+            except (OSError, ValueError) as err:  # FileNotFoundError included
+                print(f"error: {err}", file=sys.stderr)
+                failed += 1
+            else:
+                print(f"{run_dir}:\n{text}\n")
+                explained += 1
+    if not explained and not failed:
+        print("error: no DICE run to explain among " + ", ".join(args.runs), file=sys.stderr)
+    return 1 if failed or not explained else 0
 
 
 if __name__ == "__main__":  # pragma: no cover
-    for arg in sys.argv[1:]:
-        print(f"{arg}:\n{explain_run(arg)}\n")
+    raise SystemExit(main())

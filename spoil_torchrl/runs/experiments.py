@@ -51,9 +51,40 @@ def train_section(results_path: Path) -> str | None:
     return OmegaConf.to_yaml(dict(sorted(section.items())))
 
 
+#: What every finished run of ``recipes/spoildice_dsrl.py`` records in its ``results.json`` and the report
+#: reads (an expert's run, ``recipes/train_experts.py``, records none of it).
+RUN_KEYS = ("dataset", "algo", "seed", "aggregate", "evaluations", "total_seconds")
+#: What the tables of an experiment's cells read (:func:`load_experiment`), besides ``experiment``.
+CELL_KEYS = ("dataset", "algo", "seed", "aggregate")
+
+
+def incomplete(results: dict, keys: tuple[str, ...] = RUN_KEYS) -> str | None:
+    """Why a finished run's ``results.json`` cannot be reported (the ``keys`` it lacks, or an ``aggregate``
+    that is not a mapping), ``None`` when it can.
+
+    Examples:
+        >>> results = {"status": "finished", "dataset": "d", "algo": "bc", "seed": 0}
+        >>> print(incomplete(results))  # doctest: +ELLIPSIS
+        finished, but its results.json has no aggregate, evaluations, total_seconds (not a run of recipes/...)
+        >>> incomplete({"dataset": "d", "algo": "bc", "seed": 0, "aggregate": {}, "evaluations": [],
+        ...             "total_seconds": 1.0}) is None
+        True
+    """
+    missing = [key for key in keys if key not in results]
+    if missing:
+        return (
+            f"finished, but its results.json has no {', '.join(missing)} (not a run of "
+            "recipes/spoildice_dsrl.py?)"
+        )
+    if not isinstance(results["aggregate"], dict):
+        return f"finished, but its results.json's aggregate is not a mapping: {results['aggregate']!r}"
+    return None
+
+
 def finished_results(folders: Sequence[str | Path], skipped: list) -> Iterator[tuple[Path, dict]]:
     """``(path, results)`` of every finished run's ``results.json`` under ``folders``, sorted per folder; the
-    others are appended to ``skipped`` as ``(path, reason)`` (unreadable, or their status and error).
+    others are appended to ``skipped`` as ``(path, reason)`` (unreadable, not a JSON object, without a
+    ``status``, or their status and error).
 
     Raises:
         FileNotFoundError: a folder does not exist.
@@ -64,8 +95,18 @@ def finished_results(folders: Sequence[str | Path], skipped: list) -> Iterator[t
         for path in sorted(folder.rglob("results.json")):
             try:
                 results = json.loads(path.read_text())
-            except ValueError as err:
+            except (OSError, ValueError) as err:
                 skipped.append((path, f"unreadable ({err})"))
+                continue
+            if not isinstance(results, dict):
+                kind = {list: "a list", str: "a string", bool: "true or false", type(None): "null"}
+                held = kind.get(type(results), "a number")
+                skipped.append(
+                    (path, f"not a run's results: its results.json holds {held}, not a JSON object")
+                )
+                continue
+            if "status" not in results:
+                skipped.append((path, "no status in its results.json (not a run's results?)"))
                 continue
             status = run_status(path.parent, results)
             if status != "finished":
@@ -98,7 +139,9 @@ def load_experiment(
     skipped = [] if skipped is None else skipped
     found: dict[str, list[tuple[Path, dict]]] = defaultdict(list)
     for path, results in finished_results(folders, skipped):
-        if "experiment" not in results:
+        if incomplete(results, CELL_KEYS) is not None:
+            skipped.append((path, incomplete(results, CELL_KEYS)))
+        elif "experiment" not in results:
             skipped.append((path, "not a cell of an experiment (started without experiment=...)"))
         else:
             found[results["experiment"]["name"]].append((path, results))
@@ -115,7 +158,9 @@ def load_experiment(
         raise ValueError(f"no finished cell of experiment {name!r} under {where}")
     experiment = _cells(name, found[name], mixed_files=mixed_files)
     experiment.unfinished = [
-        (str(p.parent), reason) for p, reason in skipped if not reason.startswith("not a cell")
+        (str(p.parent), reason)
+        for p, reason in skipped
+        if not reason.startswith(("not a cell", "finished, but"))
     ]
     return experiment
 

@@ -9,7 +9,6 @@ distribution (one the task's actions can take), and the top-level keys. Every pr
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -20,56 +19,33 @@ from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.modules.actor import CONTINUOUS_DISTRIBUTIONS, DISTRIBUTIONS
 from spoil_torchrl.objectives.input_gradient import PENALTY_FORMS
 from spoil_torchrl.precision import MATMUL_PRECISIONS
+from spoil_torchrl.rules import layers, non_negative, number, open_unit, optional, positive_int, seed, unit
 from spoil_torchrl.tasks import ENV_TASKS
 
 
-def _number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _positive_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
-
-
-def _seed(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
-
-
-def _open_unit(value: Any) -> bool:
-    return _number(value) and 0.0 < value < 1.0
-
-
-def _non_negative(value: Any) -> bool:
-    return _number(value) and value >= 0
-
-
 def _penalty(value: Any) -> bool:  # a coefficient, or one per role
-    return _non_negative(value) or (
-        isinstance(value, Mapping) and all(_non_negative(v) for v in value.values())
+    return non_negative(value) or (
+        isinstance(value, Mapping) and all(non_negative(v) for v in value.values())
     )
-
-
-def _layers(value: Any) -> bool:
-    return isinstance(value, (list, tuple)) and all(_positive_int(v) for v in value)
 
 
 #: key name -> (check, what is expected); applies wherever the key appears in ``train`` or ``algo``.
 RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "lr": (lambda v: _number(v) and v > 0, "a finite number > 0"),
-    "gamma": (_open_unit, "a number in (0, 1)"),
-    "kappa": (_open_unit, "a quantile in (0, 1)"),
-    "eta": (_open_unit, "a class prior in (0, 1)"),
-    "steps": (_positive_int, "an integer >= 1"),
-    "discriminator_steps": (_positive_int, "an integer >= 1"),
-    "eval_interval": (_positive_int, "an integer >= 1"),
-    "eval_episodes": (_positive_int, "an integer >= 1"),
-    "last_evaluations": (_positive_int, "an integer >= 1"),
-    "batch_size": (_positive_int, "an integer >= 1"),
-    "log_interval": (_positive_int, "an integer >= 1"),
-    "update_interval": (_positive_int, "an integer >= 1"),
+    "lr": (lambda v: number(v) and v > 0, "a finite number > 0"),
+    "gamma": (open_unit, "a number in (0, 1)"),
+    "kappa": (open_unit, "a quantile in (0, 1)"),
+    "eta": (open_unit, "a class prior in (0, 1)"),
+    "steps": (positive_int, "an integer >= 1"),
+    "discriminator_steps": (positive_int, "an integer >= 1"),
+    "eval_interval": (positive_int, "an integer >= 1"),
+    "eval_episodes": (positive_int, "an integer >= 1"),
+    "last_evaluations": (positive_int, "an integer >= 1"),
+    "batch_size": (positive_int, "an integer >= 1"),
+    "log_interval": (positive_int, "an integer >= 1"),
+    "update_interval": (positive_int, "an integer >= 1"),
     "gradient_penalty": (_penalty, "a number >= 0 (or one per role)"),
     "nu_gradient_penalty": (_penalty, "a number >= 0"),
-    "hidden_cells": (_layers, "a list of layer sizes >= 1"),
+    "hidden_cells": (layers, "a list of layer sizes >= 1"),
     "compile": (lambda v: isinstance(v, bool), "true or false"),
     "checkpoint": (lambda v: isinstance(v, bool), "true or false"),
     "reference_offsets": (lambda v: isinstance(v, bool), "true or false"),
@@ -77,30 +53,22 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "matmul_precision": (lambda v: v in MATMUL_PRECISIONS, " | ".join(MATMUL_PRECISIONS)),
     "penalty_form": (lambda v: v in PENALTY_FORMS, " | ".join(PENALTY_FORMS)),
     "alpha": (
-        lambda v: v == "auto" or _non_negative(v),
+        lambda v: v == "auto" or non_negative(v),
         "a number >= 0 (or auto where the algorithm allows)",
     ),
 }
 
 
-def _unit(value: Any) -> bool:
-    return _number(value) and 0.0 <= value <= 1.0
-
-
-def _optional(check: Callable[[Any], bool]) -> Callable[[Any], bool]:
-    return lambda value: value is None or check(value)
-
-
 #: key name -> (check, what is expected) for the ``dataset`` section.
 DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "n_safe": (_positive_int, "an integer >= 1"),
-    "n_performant": (_positive_int, "an integer >= 1"),
-    "n_unlabeled": (_optional(_positive_int), "null or an integer >= 1"),
-    "n_nonpreferred": (_optional(_positive_int), "null or an integer >= 1"),
-    "performance": (_unit, "a share in [0, 1]"),
-    "safeness": (_unit, "a share in [0, 1]"),
-    "return_quantile": (_unit, "a quantile in [0, 1]"),
-    "cost_threshold": (_optional(_non_negative), "null or a number >= 0"),
+    "n_safe": (positive_int, "an integer >= 1"),
+    "n_performant": (positive_int, "an integer >= 1"),
+    "n_unlabeled": (optional(positive_int), "null or an integer >= 1"),
+    "n_nonpreferred": (optional(positive_int), "null or an integer >= 1"),
+    "performance": (unit, "a share in [0, 1]"),
+    "safeness": (unit, "a share in [0, 1]"),
+    "return_quantile": (unit, "a quantile in [0, 1]"),
+    "cost_threshold": (optional(non_negative), "null or a number >= 0"),
     "scheme": (lambda v: v in SCHEMES, " or ".join(SCHEMES)),
     "generate": (lambda v: isinstance(v, bool), "true or false"),
     "constraints": (
@@ -115,19 +83,19 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
         ),
         "null or a list of distinct constraint names (the data's cost_<name> components)",
     ),
-    "n_safe_per_constraint": (_optional(_positive_int), "null or an integer >= 1"),
+    "n_safe_per_constraint": (optional(positive_int), "null or an integer >= 1"),
     "constraint_pools": (
         lambda v: v is None or (isinstance(v, Mapping) and all(isinstance(x, str) for x in v.values())),
         "null or a mapping of constraint names to typed pools of the file",
     ),
     "constraint_thresholds": (
-        lambda v: v is None or (isinstance(v, Mapping) and all(_non_negative(x) for x in v.values())),
+        lambda v: v is None or (isinstance(v, Mapping) and all(non_negative(x) for x in v.values())),
         "null or a mapping of constraint names to thresholds >= 0",
     ),
     "return_range": (
         lambda v: (
             v is None
-            or (isinstance(v, (list, tuple)) and len(v) == 2 and all(map(_number, v)) and v[0] < v[1])
+            or (isinstance(v, (list, tuple)) and len(v) == 2 and all(map(number, v)) and v[0] < v[1])
         ),
         "null or two finite numbers [R_min, R_max] with R_min < R_max",
     ),
@@ -183,13 +151,13 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
     """
     cores = available_cores()
     for key, check, expected in (
-        ("seed", _seed, "an integer >= 0"),
+        ("seed", seed, "an integer >= 0"),
         (
             "threads",
-            lambda v: _positive_int(v) and v <= cores,
+            lambda v: positive_int(v) and v <= cores,
             f"an integer from 1 to {cores} (this machine's cores)",
         ),
-        ("task.eval_num_envs", _positive_int, "an integer >= 1"),
+        ("task.eval_num_envs", positive_int, "an integer >= 1"),
         *((switch, lambda v: isinstance(v, bool), "true or false") for switch in SWITCHES),
     ):
         present, value = _dotted(cfg, key)
@@ -202,7 +170,7 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
     if seeds is not None and not (
         isinstance(seeds, (list, tuple))
         and seeds
-        and all(_seed(s) for s in seeds)
+        and all(seed(s) for s in seeds)
         and len(set(seeds)) == len(seeds)
     ):
         raise SettingsError(f"seeds = {seeds!r}: expected null or a list of distinct integers >= 0")

@@ -54,18 +54,29 @@ NO_LOGGER = (None, "", "none")
 DEFAULT_PROJECT = "spoil_torchrl"
 
 
-def check_logger_available(kind: str | None) -> None:
+def check_logger_available(kind: str | None, setting: str | None = None) -> None:
     """Refuse a logger type TorchRL does not know, or one whose package is not installed (a
-    :class:`~spoil_torchrl.errors.SettingsError` saying what installs it)."""
+    :class:`~spoil_torchrl.errors.SettingsError` saying what installs it). The messages name the main recipe's
+    ``logger.type`` / ``logger=`` group, or ``setting`` where a recipe chooses its logger with another key.
+
+    Examples:
+        >>> check_logger_available("csv")
+        >>> check_logger_available("nope", setting="logger.backend")
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.errors.SettingsError: logger.backend='nope' is not a logger; choose one of csv, \
+tensorboard, wandb, mlflow, none
+    """
     if kind in NO_LOGGER or kind == "csv":
         return
     if kind not in LOGGER_PACKAGES:
         known = ", ".join(["csv", *LOGGER_PACKAGES, "none"])
-        raise SettingsError(f"logger.type={kind!r} is not a logger; choose one of {known}")
+        raise SettingsError(f"{setting or 'logger.type'}={kind!r} is not a logger; choose one of {known}")
     module, install = LOGGER_PACKAGES[kind]
     if importlib.util.find_spec(module) is None:
         raise SettingsError(
-            f"logger={kind} needs the {module} package, which is not installed: {install} (or choose logger=csv)"
+            f"{setting or 'logger'}={kind} needs the {module} package, which is not installed: {install} (or "
+            f"choose {setting or 'logger'}=csv)"
         )
 
 
