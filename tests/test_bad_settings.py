@@ -9,6 +9,7 @@ from spoil_torchrl.runs.settings import SettingsError, check_settings
 
 SETTING_CASES = [
     ({"algo": {"kappa": 1.5}}, "algo.kappa = 1.5"),
+    ({"algo": {"init_lagrange": float("nan")}}, "algo.init_lagrange = nan: expected a finite number"),
     ({"algo": {"kappa": 0.0}}, "algo.kappa = 0.0"),
     ({"algo": {"gamma": 1.0}}, "algo.gamma = 1.0"),
     ({"algo": {"nu_lr": -1e-3}}, "algo.nu_lr = -0.001"),

@@ -6,6 +6,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
@@ -15,6 +16,17 @@ from torchrl.data.replay_buffers.storages import TensorStorage
 
 from spoil_torchrl.data.episodes import select_episodes
 from spoil_torchrl.objectives.annotate import annotate, stored_tensordict, write_rows
+
+
+def _episode_ids(role: str, ids) -> torch.Tensor:
+    """``ids`` as int64 episode indices, refused when they are not whole numbers (a float id would be truncated
+    to another episode) or are a boolean mask."""
+    values = ids if isinstance(ids, torch.Tensor) else torch.as_tensor(np.asarray(ids))  # float64, as given
+    if values.dtype == torch.bool:
+        raise ValueError(f"role {role!r}: episode ids expected, got a boolean mask (use mask.nonzero())")
+    if values.is_floating_point() and not bool((values == values.round()).all()):
+        raise ValueError(f"role {role!r}: episode ids must be whole numbers, got {values.tolist()[:10]}")
+    return values.to(torch.int64)
 
 
 def _role_data(episodes: TensorDict, ids: torch.Tensor) -> TensorDict:
@@ -82,15 +94,17 @@ class DualDemoBuffers:
         if init_role not in roles:
             raise ValueError(f"init_role {init_role!r} is not one of the roles {list(roles)}")
         sizes = {r: batch_size for r in [*roles, "init"]} if isinstance(batch_size, int) else dict(batch_size)
+        for role, size in sizes.items():
+            if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+                raise ValueError(f"batch_size of role {role!r} = {size!r}: expected an integer >= 1")
         self.buffers: dict[str, TensorDictReplayBuffer] = {}
         self._generators: dict[str, torch.Generator] = {}
         for i, (role, ids) in enumerate([*roles.items(), ("init", None)]):
             if role == "init":
-                data = _role_data(episodes, torch.as_tensor(roles[init_role], dtype=torch.int64))
+                data = _role_data(episodes, _episode_ids(init_role, roles[init_role]))
                 data = data[data["is_init"].squeeze(-1)].select("observation", "episode")
             else:
-                ids = torch.as_tensor(ids, dtype=torch.int64)
-                data = _role_data(episodes, ids)
+                data = _role_data(episodes, _episode_ids(role, ids))
                 if data is not episodes and memmap_dir is not None:
                     data = data.memmap_(Path(memmap_dir) / role)
             if data.shape[0] == 0:

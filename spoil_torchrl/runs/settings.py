@@ -46,6 +46,7 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "gradient_penalty": (_penalty, "a number >= 0 (or one per role)"),
     "nu_gradient_penalty": (_penalty, "a number >= 0"),
     "hidden_cells": (layers, "a list of layer sizes >= 1"),
+    "init_lagrange": (number, "a finite number"),
     "compile": (lambda v: isinstance(v, bool), "true or false"),
     "checkpoint": (lambda v: isinstance(v, bool), "true or false"),
     "reference_offsets": (lambda v: isinstance(v, bool), "true or false"),

@@ -121,6 +121,20 @@ def test_bad_roles_raise(episodes):
         DualDemoBuffers(episodes, {"safe": [9], "unlabeled": [0]})
 
 
+def test_ids_that_are_not_whole_numbers_and_empty_batches_are_refused(episodes):
+    """A float id would be truncated to another episode, a mask read as ids 0 and 1, a batch of 0 drawn empty."""
+    with pytest.raises(ValueError, match=r"role 'safe': episode ids must be whole numbers, got \[1.7, 3.2\]"):
+        DualDemoBuffers(episodes, {"safe": [1.7, 3.2], "unlabeled": [0, 1, 2, 3]})
+    with pytest.raises(ValueError, match="role 'unlabeled': episode ids expected, got a boolean mask"):
+        DualDemoBuffers(episodes, {"safe": [0], "unlabeled": [True, False, True, True]})
+    with pytest.raises(ValueError, match="batch_size of role 'performant' = 0: expected an integer >= 1"):
+        _buffers(episodes, batch_size={"safe": 5, "performant": 0, "unlabeled": 7, "init": 2})
+    with pytest.raises(ValueError, match="batch_size of role 'safe' = 0"):
+        _buffers(episodes, batch_size=0)
+    whole = DualDemoBuffers(episodes, {"safe": [0.0, 2.0], "unlabeled": [0, 1, 2, 3]}, batch_size=4)
+    assert sorted(set(whole["safe"].storage._storage["episode"].tolist())) == [0, 2]
+
+
 def test_annotate_with_a_key_and_a_function(episodes):
     buffers = _buffers(episodes)
     buffers.annotate("safe", "double_cost", lambda td: 2 * td["next", "cost"], chunk_size=2)
