@@ -14,11 +14,10 @@ position (the counter-clockwise direction ``(-y / b^2, x / a^2)``, normalised), 
 task's reward exactly.
 
 SafetyPointCircle2's walls stand at ``|x| = 1.125`` and ``|y| = 1.125``. An ellipse with half-axes ``(1.0, 1.5)``
-stays inside the x walls and runs out to the circle beyond the y walls, so PPO trained on its reward
-(``ppo.track_ellipse``) gives a demonstrator that keeps the x walls and crosses the y walls on every lap: a
-one-constraint demonstrator by design, where PPO-Lagrangian against one wall's cost learns a smaller circle
-that keeps or crosses both alike (``docs/several_constraints.md``). Datasets are always recorded with the task's
-own reward; this one only trains the demonstrator.
+stays inside the x walls and runs out to the circle beyond the y walls: PPO trained on its reward
+(``ppo.track_ellipse``) was meant to give a demonstrator that keeps the x walls and crosses the y walls on every
+lap. Measured, it does not: PPO learns a rounder path inside both walls (``docs/experts.md``, the one-wall
+demonstrators). Datasets are always recorded with the task's own reward; this one only trains a demonstrator.
 """
 
 from __future__ import annotations
