@@ -5,7 +5,7 @@
     python recipes/report.py --keep docs/results/fig4c runs/experiments/fig4c
 
 ``--keep DEST`` copies each finished run's ``results.json`` and ``config.yaml`` under the folders into ``DEST``
-(:func:`spoil_torchrl.runs.keep.keep_finished`), at its path relative to its folder: what the tables
+(:func:`spoil_torchrl.reporting.keep.keep_finished`), at its path relative to its folder: what the tables
 and figures read, to commit or share while a sweep goes on. Runs not finished are listed; one already kept the
 same is left; one kept with other contents is refused (exit status 1), never overwritten.
 
@@ -46,7 +46,7 @@ import torch
 
 from spoil_torchrl.eval import mean_stderr
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
-from spoil_torchrl.runs.experiments import finished_results, incomplete, train_section
+from spoil_torchrl.reporting.experiments import finished_results, incomplete, train_section
 from spoil_torchrl.stack import stack_label, stack_name
 
 METRICS = ("normalized_feasible_return", "normalized_cost", "normalized_return")
@@ -59,7 +59,7 @@ def load_runs(
 
     Runs that are not finished (failed, interrupted, killed, still training: :func:`run_status`), and
     ``results.json`` files that are not a finished run's results (not a JSON object, no ``status``, no
-    ``aggregate`` or a metric of it: :func:`~spoil_torchrl.runs.experiments.incomplete`), are left out and
+    ``aggregate`` or a metric of it: :func:`~spoil_torchrl.reporting.experiments.incomplete`), are left out and
     appended to ``skipped`` as ``(path, reason)``. A seed found twice is an error, unless ``latest``: then the
     run whose ``results.json`` was written last counts and the others are skipped.
     """
@@ -326,7 +326,7 @@ def write_outputs(text: str, out: Path | None, figures: list[tuple[Path | None, 
 
 def keep_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """``--keep DEST``: the finished runs' small files copied into ``DEST``, and what was not."""
-    from spoil_torchrl.runs.keep import keep_finished
+    from spoil_torchrl.reporting.keep import keep_finished
 
     others = ("out", "plot", "curves", "latest", "figure", "experiment", "mixed_files")
     given = [f"--{flag.replace('_', '-')}" for flag in others if getattr(args, flag) not in (None, False)]
@@ -359,7 +359,7 @@ def figure_report(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
         figure_panels,
     )
     from spoil_torchrl.eval.figures import plot_levels
-    from spoil_torchrl.runs.experiments import load_experiment
+    from spoil_torchrl.reporting.experiments import load_experiment
 
     if args.curves or args.latest:
         parser.error("--curves and --latest are not available with --figure")

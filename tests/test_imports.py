@@ -21,7 +21,7 @@ FLOORS = [
     {"trainers"},
     {"algorithms", "tabular"},
     {"runs"},
-    {"experts"},
+    {"experts", "reporting"},
     {"inspect"},
     {"recipes"},
 ]

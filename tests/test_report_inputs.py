@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from spoil_torchrl.runs.experiments import load_experiment
+from spoil_torchrl.reporting.experiments import load_experiment
 from tests.cli import run_command
 from tests.test_command_errors import _results_json
 

@@ -1,7 +1,7 @@
 """The tables, figure panels and aggregate statistics of a paper experiment, from its cells' results.
 
 An :class:`Experiment` holds the finished cells of one experiment (read from run directories by
-:func:`~spoil_torchrl.runs.experiments.load_experiment`). :func:`level_summary` gives per task, level and method
+:func:`~spoil_torchrl.reporting.experiments.load_experiment`). :func:`level_summary` gives per task, level and method
 the mean and standard error over seeds of the normalised feasible return and cost, and :func:`task_average` the
 same averaged over the tasks present, as the paper's Fig. 4 averages its six tasks. :func:`experiment_markdown`
 writes both as tables, one column per level, :func:`diagnostics_markdown` the DICE diagnostics of the weighted

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from spoil_torchrl.runs.keep import keep_finished
+from spoil_torchrl.reporting.keep import keep_finished
 from tests.cli import run_command
 
 CELL = "fig4b/n_performant2/bc/seed0"

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from spoil_torchrl.files import write_atomic
-from spoil_torchrl.runs.experiments import finished_results
+from spoil_torchrl.reporting.experiments import finished_results
 
 #: What :func:`keep_finished` copies of a finished run: what its tables and figures read, nothing else.
 KEPT_FILES = ("config.yaml", "results.json")

@@ -12,7 +12,7 @@ from spoil_torchrl.eval.experiment_tables import (
     score_matrices,
     task_average,
 )
-from spoil_torchrl.runs.experiments import load_experiment
+from spoil_torchrl.reporting.experiments import load_experiment
 from tests.cli import run_command
 
 
