@@ -10,6 +10,10 @@ from spoil_torchrl.runs.settings import SettingsError, check_settings
 SETTING_CASES = [
     ({"algo": {"kappa": 1.5}}, "algo.kappa = 1.5"),
     ({"algo": {"init_lagrange": float("nan")}}, "algo.init_lagrange = nan: expected a finite number"),
+    (
+        {"seed": 3, "seeds": [0, 1]},
+        "seed = 3 with seeds = [0, 1]: a seeds=[...] run trains exactly those seeds",
+    ),
     ({"algo": {"kappa": 0.0}}, "algo.kappa = 0.0"),
     ({"algo": {"gamma": 1.0}}, "algo.gamma = 1.0"),
     ({"algo": {"nu_lr": -1e-3}}, "algo.nu_lr = -0.001"),

@@ -175,6 +175,12 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
         and len(set(seeds)) == len(seeds)
     ):
         raise SettingsError(f"seeds = {seeds!r}: expected null or a list of distinct integers >= 0")
+    # seed's default (0) is there whatever was asked; another seed beside seeds=[...] would be ignored
+    if seeds is not None and cfg.get("seed", 0) not in (0, *seeds):
+        raise SettingsError(
+            f"seed = {cfg['seed']!r} with seeds = {list(seeds)!r}: a seeds=[...] run trains exactly those seeds; "
+            "leave seed out, or add it to seeds"
+        )
     for section in ("train", "algo"):
         if not isinstance(cfg.get(section), Mapping):
             continue
