@@ -102,7 +102,7 @@ def main(cfg: DictConfig) -> dict:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     with ended_in_one_line("recipes/tabular_spoildice.py", run_dir):  # a bad setting: one line, exit status 2
         settings = OmegaConf.to_container(cfg, resolve=True)
-        check_settings({key: settings[key] for key in ("threads", "progress")})
+        check_settings({"progress": settings["progress"]})
         check_logger_available(cfg.logger.backend, setting="logger.backend")
         check_tabular_settings(settings)
     log.info(BANNER)

@@ -113,27 +113,39 @@ def check_keys(cfg: Mapping, rules: Mapping[str, Rule], prefix: str = "") -> Non
 
 
 def check_section(
-    cfg: Mapping, name: str, rules: Mapping[str, Rule], *, accepted: tuple[str, ...] | None = None
+    cfg: Mapping,
+    name: str,
+    rules: Mapping[str, Rule],
+    *,
+    accepted: tuple[str, ...] | None = None,
+    every_key: bool = True,
 ) -> None:
-    """Check the section ``cfg[name]``: a key outside ``accepted`` (when given) is refused, and each key of
-    ``rules`` it has must pass its rule; with ``accepted`` unset every key of ``rules`` must be there.
+    """Check the section ``cfg[name]``: a key outside ``accepted`` (default: the keys of ``rules``) is refused,
+    each key of ``rules`` it has must pass its rule, and with ``every_key`` each key of ``rules`` must be there
+    (``every_key=False``: a key left out keeps its default).
 
     Examples:
         >>> rules = {"kappa": (open_unit, "a quantile in (0, 1)")}
-        >>> check_section({"training": {"kappa": 2}}, "training", rules, accepted=("kappa",))
+        >>> check_section({"training": {"kappa": 2}}, "training", rules)
         Traceback (most recent call last):
         ...
         spoil_torchrl.errors.SettingsError: training.kappa = 2: expected a quantile in (0, 1)
+        >>> check_section({"training": {"kapa": 0.1}}, "training", rules, every_key=False)
+        Traceback (most recent call last):
+        ...
+        spoil_torchrl.errors.SettingsError: training.kapa is not a setting; the settings of training: kappa
     """
     section = cfg.get(name)
     if not isinstance(section, Mapping):
         raise SettingsError(f"{name} = {section!r}: expected a section with {', '.join(rules)}")
-    if accepted is None:
-        check_keys(section, rules, f"{name}.")
-        return
+    allowed = tuple(rules) if accepted is None else accepted
     for key in section:
-        if key not in accepted:
+        if key not in allowed:
             raise SettingsError(
-                f"{name}.{key} is not a setting; the settings of {name}: {', '.join(accepted)}"
+                f"{name}.{key} is not a setting; the settings of {name}: {', '.join(allowed)}"
             )
-    check_keys(section, {key: rule for key, rule in rules.items() if key in section}, f"{name}.")
+    check_keys(
+        section,
+        rules if every_key else {key: rule for key, rule in rules.items() if key in section},
+        f"{name}.",
+    )

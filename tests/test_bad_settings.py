@@ -11,6 +11,10 @@ SETTING_CASES = [
     ({"algo": {"kappa": 1.5}}, "algo.kappa = 1.5"),
     ({"algo": {"init_lagrange": float("nan")}}, "algo.init_lagrange = nan: expected a finite number"),
     (
+        {"algo": {"name": "coptidice", "init_lagrange": 0.0}},
+        "algo.init_lagrange = 0.0: COptiDICE learns its logarithm; expected a finite number > 0",
+    ),
+    (
         {"seed": 3, "seeds": [0, 1]},
         "seed = 3 with seeds = [0, 1]: a seeds=[...] run trains exactly those seeds",
     ),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -24,7 +25,7 @@ def _episode_ids(role: str, ids) -> torch.Tensor:
     values = ids if isinstance(ids, torch.Tensor) else torch.as_tensor(np.asarray(ids))  # float64, as given
     if values.dtype == torch.bool:
         raise ValueError(f"role {role!r}: episode ids expected, got a boolean mask (use mask.nonzero())")
-    if values.is_floating_point() and not bool((values == values.round()).all()):
+    if values.is_floating_point() and not bool((values.isfinite() & (values == values.round())).all()):
         raise ValueError(f"role {role!r}: episode ids must be whole numbers, got {values.tolist()[:10]}")
     return values.to(torch.int64)
 
@@ -93,10 +94,15 @@ class DualDemoBuffers:
             raise ValueError("'init' is reserved for the initial-state buffer")
         if init_role not in roles:
             raise ValueError(f"init_role {init_role!r} is not one of the roles {list(roles)}")
-        sizes = {r: batch_size for r in [*roles, "init"]} if isinstance(batch_size, int) else dict(batch_size)
+        sizes = (
+            {r: batch_size for r in [*roles, "init"]}
+            if isinstance(batch_size, numbers.Integral)
+            else dict(batch_size)
+        )
         for role, size in sizes.items():
-            if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            if isinstance(size, bool) or not isinstance(size, numbers.Integral) or size < 1:
                 raise ValueError(f"batch_size of role {role!r} = {size!r}: expected an integer >= 1")
+            sizes[role] = int(size)
         self.buffers: dict[str, TensorDictReplayBuffer] = {}
         self._generators: dict[str, torch.Generator] = {}
         for i, (role, ids) in enumerate([*roles.items(), ("init", None)]):

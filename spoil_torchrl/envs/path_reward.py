@@ -49,7 +49,7 @@ def ellipse_reward(
         >>> round(ellipse_reward((0.0, 1.5), (-1.0, 0.0), (1.0, 1.5)), 6)  # on the ellipse's tip
         0.1
         >>> round(ellipse_reward((1.5, 0.0), (0.0, 1.0), (1.0, 1.5)), 6)  # beyond it, 0.5 x sqrt(1.5) out
-        0.062029
+        0.06202
     """
     x, y = float(position[0]), float(position[1])
     u, v = float(velocity[0]), float(velocity[1])

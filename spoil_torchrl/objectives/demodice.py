@@ -77,8 +77,8 @@ def demodice_diagnostics(
 
 #: What writes the reward :class:`DemoDICELoss` reads, said when its role lacks it.
 REWARD_WRITER = (
-    "the reward log d_P/d_R, written by C_P's PUDiscriminatorLoss.log_ratio_module() in DemoDICE's "
-    "pre-training (buffers.annotate)"
+    "the reward, written by DemoDICE's pre-training (buffers.annotate): C_P's log-ratio "
+    "(PUDiscriminatorLoss.log_ratio_module()) for DemoDICE-S, log r_P + alpha log r_S for DemoDICE-U"
 )
 
 

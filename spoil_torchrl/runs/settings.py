@@ -209,6 +209,14 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
             f"{' | '.join(CONSTRAINED_ALGORITHMS)} only (one support cut per constraint); algo={algo} would "
             "ignore them (docs/several_constraints.md)"
         )
+    for key in (
+        ("init_lagrange", "init_tau") if algo == "coptidice" else ()
+    ):  # COptiDICE learns their logarithms
+        present, value = _dotted(cfg, f"algo.{key}")
+        if present and not (number(value) and value > 0):
+            raise SettingsError(
+                f"algo.{key} = {value!r}: COptiDICE learns its logarithm; expected a finite number > 0"
+            )
 
 
 def _check_distribution(cfg: Mapping[str, Any]) -> None:

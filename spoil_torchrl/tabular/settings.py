@@ -113,9 +113,9 @@ METHOD_RULES: dict[str, Rule] = {
 
 def check_tabular_settings(cfg: Mapping[str, Any]) -> None:
     """Raise :class:`~spoil_torchrl.errors.SettingsError` for the first setting of the tabular SpoilDICE
-    check's resolved configuration ``cfg`` that cannot be right: ``seeds``, :data:`PROBLEM_RULES`,
-    :data:`TRAINING_RULES` (and no other ``training`` key) and the logger's experiment name. (``threads``,
-    ``progress`` and ``logger.backend`` are the main recipe's settings, checked as there.)
+    check's resolved configuration ``cfg`` that cannot be right: ``seeds``, ``threads``, :data:`PROBLEM_RULES`
+    (no other ``problem`` key), :data:`TRAINING_RULES` (no other ``training`` key) and the logger's experiment
+    name. (``progress`` and ``logger.backend`` are the main recipe's settings, checked as there.)
 
     Examples:
         >>> check_tabular_settings({"seeds": []})
@@ -123,9 +123,15 @@ def check_tabular_settings(cfg: Mapping[str, Any]) -> None:
         ...
         spoil_torchrl.errors.SettingsError: seeds = []: expected a non-empty list of distinct integers >= 0
     """
-    check_keys(cfg, {"seeds": (list_of(seed, distinct=True), "a non-empty list of distinct integers >= 0")})
+    check_keys(
+        cfg,
+        {
+            "seeds": (list_of(seed, distinct=True), "a non-empty list of distinct integers >= 0"),
+            "threads": _STEPS,  # torch's intra-op threads: more than the cores is slower, not wrong
+        },
+    )
     check_section(cfg, "problem", PROBLEM_RULES)
-    check_section(cfg, "training", TRAINING_RULES, accepted=TRAINING_SETTINGS)
+    check_section(cfg, "training", TRAINING_RULES, accepted=TRAINING_SETTINGS, every_key=False)
     name = cfg.get("logger", {}).get("experiment_name") if isinstance(cfg.get("logger"), Mapping) else None
     if not (isinstance(name, str) and name):
         raise SettingsError(
@@ -147,7 +153,7 @@ def check_gridworld_settings(cfg: Mapping[str, Any]) -> None:
         spoil_torchrl.errors.SettingsError: levels = [1.5]: expected a non-empty list of distinct shares ...
     """
     check_keys(cfg, GRIDWORLD_RULES)
-    check_section(cfg, "grid", GRID_RULES, accepted=GRID_SETTINGS)
+    check_section(cfg, "grid", GRID_RULES, accepted=GRID_SETTINGS, every_key=False)
     check_grid_layout(cfg["grid"])
     check_section(cfg, "methods", METHOD_RULES)
 

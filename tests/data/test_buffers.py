@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from tensordict.nn import TensorDictModule
@@ -131,7 +132,9 @@ def test_ids_that_are_not_whole_numbers_and_empty_batches_are_refused(episodes):
         _buffers(episodes, batch_size={"safe": 5, "performant": 0, "unlabeled": 7, "init": 2})
     with pytest.raises(ValueError, match="batch_size of role 'safe' = 0"):
         _buffers(episodes, batch_size=0)
-    whole = DualDemoBuffers(episodes, {"safe": [0.0, 2.0], "unlabeled": [0, 1, 2, 3]}, batch_size=4)
+    with pytest.raises(ValueError, match="role 'safe': episode ids must be whole numbers"):
+        DualDemoBuffers(episodes, {"safe": [0.0, float("inf")], "unlabeled": [0, 1, 2, 3]})
+    whole = DualDemoBuffers(episodes, {"safe": [0.0, 2.0], "unlabeled": [0, 1, 2, 3]}, batch_size=np.int64(4))
     assert sorted(set(whole["safe"].storage._storage["episode"].tolist())) == [0, 2]
 
 

@@ -68,6 +68,8 @@ TABULAR_CASES = [
     ("seeds", [0, 0], "seeds = [0, 0]"),
     ("seeds", [-1], "seeds = [-1]"),
     ("seeds", 3, "seeds = 3"),
+    ("threads", 0, "threads = 0: expected an integer >= 1"),
+    ("problem.n_state", 7, "problem.n_state is not a setting; the settings of problem: n_states"),
     ("logger.experiment_name", 2024, "logger.experiment_name = 2024"),
 ]
 
@@ -107,6 +109,7 @@ GRIDWORLD_CASES = [
     ("methods.thresholds", [0.0, -1e-9], "methods.thresholds = [0.0, -1e-09]"),
     ("methods.demodice_alphas", [float("inf")], "methods.demodice_alphas = [inf]"),
     ("methods.spoildice_lagrange", -1.0, "methods.spoildice_lagrange = -1.0"),
+    ("methods.alphas", [1.0], "methods.alphas is not a setting"),
 ]
 
 
@@ -142,7 +145,7 @@ def test_the_settings_that_stay_valid_are_taken():
     [
         ("tabular_spoildice", "training.batch_size=0", "training.batch_size = 0"),
         ("tabular_spoildice", "seeds=[]", "seeds = []"),
-        ("tabular_spoildice", "threads=0", "threads = 0: expected an integer from 1 to"),
+        ("tabular_spoildice", "threads=0", "threads = 0: expected an integer >= 1"),
         (
             "tabular_spoildice",
             "logger.backend=nope",
