@@ -9,7 +9,7 @@ import os
 import pytest
 import torch
 
-from tests.test_experts import _tiny_config, _train, needs_safety_gymnasium
+from tests.experts.helpers import needs_safety_gymnasium, tiny_config, train
 
 
 def test_an_incomplete_replay_buffer_is_refused(tmp_path):
@@ -33,8 +33,8 @@ def test_a_recorded_training_becomes_a_replay_dataset_that_trains(tmp_path):
     from tests.cli import run_command
 
     run = tmp_path / "expert"
-    _train(
-        run, _tiny_config(record_episodes=2, frames_per_batch=1000, total_frames=3000)
+    train(
+        run, tiny_config(record_episodes=2, frames_per_batch=1000, total_frames=3000)
     )  # 2 episodes per batch
     env = {**os.environ, "SPOIL_TORCHRL_DATA_DIR": str(tmp_path / "data")}
     made = run_command(
