@@ -19,7 +19,18 @@ from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.modules.actor import CONTINUOUS_DISTRIBUTIONS, DISTRIBUTIONS
 from spoil_torchrl.objectives.input_gradient import PENALTY_FORMS
 from spoil_torchrl.precision import MATMUL_PRECISIONS
-from spoil_torchrl.rules import layers, non_negative, number, open_unit, optional, positive_int, seed, unit
+from spoil_torchrl.rules import (
+    layers,
+    non_negative,
+    number,
+    open_unit,
+    optional,
+    positive,
+    positive_int,
+    seed,
+    switch,
+    unit,
+)
 from spoil_torchrl.tasks import ENV_TASKS
 
 
@@ -31,7 +42,7 @@ def _penalty(value: Any) -> bool:  # a coefficient, or one per role
 
 #: key name -> (check, what is expected); applies wherever the key appears in ``train`` or ``algo``.
 RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "lr": (lambda v: number(v) and v > 0, "a finite number > 0"),
+    "lr": (positive, "a finite number > 0"),
     "gamma": (open_unit, "a number in (0, 1)"),
     "kappa": (open_unit, "a quantile in (0, 1)"),
     "eta": (open_unit, "a class prior in (0, 1)"),
@@ -47,10 +58,10 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "nu_gradient_penalty": (_penalty, "a number >= 0"),
     "hidden_cells": (layers, "a list of layer sizes >= 1"),
     "init_lagrange": (number, "a finite number"),
-    "compile": (lambda v: isinstance(v, bool), "true or false"),
-    "checkpoint": (lambda v: isinstance(v, bool), "true or false"),
-    "reference_offsets": (lambda v: isinstance(v, bool), "true or false"),
-    "standardize_reward": (lambda v: isinstance(v, bool), "true or false"),
+    "compile": (switch, "true or false"),
+    "checkpoint": (switch, "true or false"),
+    "reference_offsets": (switch, "true or false"),
+    "standardize_reward": (switch, "true or false"),
     "matmul_precision": (lambda v: v in MATMUL_PRECISIONS, " | ".join(MATMUL_PRECISIONS)),
     "penalty_form": (lambda v: v in PENALTY_FORMS, " | ".join(PENALTY_FORMS)),
     "alpha": (
@@ -71,7 +82,7 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "return_quantile": (unit, "a quantile in [0, 1]"),
     "cost_threshold": (optional(non_negative), "null or a number >= 0"),
     "scheme": (lambda v: v in SCHEMES, " or ".join(SCHEMES)),
-    "generate": (lambda v: isinstance(v, bool), "true or false"),
+    "generate": (switch, "true or false"),
     "constraints": (
         lambda v: (
             v is None
@@ -159,7 +170,7 @@ def check_settings(cfg: Mapping[str, Any]) -> None:
             f"an integer from 1 to {cores} (this machine's cores)",
         ),
         ("task.eval_num_envs", positive_int, "an integer >= 1"),
-        *((switch, lambda v: isinstance(v, bool), "true or false") for switch in SWITCHES),
+        *((key, switch, "true or false") for key in SWITCHES),
     ):
         present, value = _dotted(cfg, key)
         if present and not check(value):
