@@ -11,7 +11,19 @@ ROOT = Path(__file__).resolve().parents[1]
 #: The floors, lowest first (CONTRIBUTING.md, "Layout"): a unit is a subpackage or a top-level module of
 #: spoil_torchrl (``recipes`` for the recipes); each may import from its own floor and the floors below.
 FLOORS = [
-    {"(top)", "console", "devices", "divergence", "errors", "files", "precision", "rules", "stack", "tasks"},
+    {
+        "(top)",
+        "console",
+        "devices",
+        "divergence",
+        "errors",
+        "files",
+        "precision",
+        "rules",
+        "stack",
+        "stopping",
+        "tasks",
+    },
     {"envs"},
     {"modules"},
     {"objectives"},

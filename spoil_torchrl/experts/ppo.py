@@ -47,8 +47,8 @@ from spoil_torchrl.runs.directory import CHECKPOINT_NAME
 from spoil_torchrl.runs.results import write_json
 from spoil_torchrl.runs.resume import check_resumable
 from spoil_torchrl.stack import current_stack
+from spoil_torchrl.stopping import raise_if_stopped, stop_requested
 from spoil_torchrl.tasks import get_env_task
-from spoil_torchrl.trainers.offline import raise_if_stopped, stop_requested
 
 
 def batch_seed(seed: int, batch: int) -> int:

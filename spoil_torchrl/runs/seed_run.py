@@ -33,11 +33,11 @@ from spoil_torchrl.divergence import check_finite
 from spoil_torchrl.eval import Evaluator, RolloutWriter
 from spoil_torchrl.eval.dice_diagnostics import (
     dice_diagnostics,
-    explain,
     source_masks,
     summary_scalars,
     support_accuracy,
 )
+from spoil_torchrl.eval.dice_explain import explain
 from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.precision import matmul_check
 from spoil_torchrl.runs.checkpoint import CheckpointError, load_checkpoint, save_checkpoint

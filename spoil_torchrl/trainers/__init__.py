@@ -1,5 +1,6 @@
 """Training loops: TorchRL Trainer glue for offline learning."""
 
+from spoil_torchrl.stopping import stop_on_signals
 from spoil_torchrl.trainers.compiled import CompiledStepper
 from spoil_torchrl.trainers.fused_adam import FusedAdamSteps
 from spoil_torchrl.trainers.offline import (
@@ -8,7 +9,6 @@ from spoil_torchrl.trainers.offline import (
     SampleBuffers,
     StepEvery,
     offline_trainer,
-    stop_on_signals,
 )
 
 __all__ = [

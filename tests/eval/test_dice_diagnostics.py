@@ -13,8 +13,6 @@ from torch import nn
 
 from spoil_torchrl.eval.dice_diagnostics import (
     dice_diagnostics,
-    explain,
-    explain_run,
     source_masks,
     subsample,
     summary_scalars,
@@ -22,6 +20,7 @@ from spoil_torchrl.eval.dice_diagnostics import (
     variance_shares,
     weight_shares,
 )
+from spoil_torchrl.eval.dice_explain import explain, explain_run
 from spoil_torchrl.objectives import DemoDICELoss, SpoilDICELoss
 
 

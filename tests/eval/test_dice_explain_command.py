@@ -1,4 +1,4 @@
-"""``python -m spoil_torchrl.eval.dice_diagnostics``: each run it cannot explain gets one line naming it and
+"""``python -m spoil_torchrl.eval.dice_explain``: each run it cannot explain gets one line naming it and
 why, the others are explained, and the exit status says whether all were (in this process: tests/cli.py)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 from tests.cli import run_command
 
 ROOT = Path(__file__).resolve().parents[2]
-COMMAND = ["-m", "spoil_torchrl.eval.dice_diagnostics"]
+COMMAND = ["-m", "spoil_torchrl.eval.dice_explain"]
 
 DIAG = {
     "role": "unlabeled",

@@ -152,8 +152,8 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
 
 @needs_safety_gymnasium
 def test_sigterm_keeps_the_batch_it_arrived_in_and_resumes_from_it(tmp_path, monkeypatch):
+    from spoil_torchrl import stopping
     from spoil_torchrl.experts import ppo as ppo_module
-    from spoil_torchrl.trainers import offline
 
     train(tmp_path / "whole", tiny_config(checkpoint_every=4))
     update = ppo_module.ppo_update
@@ -161,13 +161,13 @@ def test_sigterm_keeps_the_batch_it_arrived_in_and_resumes_from_it(tmp_path, mon
     def sigterm_in_batch_two(learner, batch, config, index, cost, **kwargs):
         result = update(learner, batch, config, index, cost, **kwargs)
         if index == 1:  # what stop_on_signals' handler records when SIGTERM arrives
-            monkeypatch.setattr(offline, "_stop_reason", "signal SIGTERM")
+            monkeypatch.setattr(stopping, "_stop_reason", "signal SIGTERM")
         return result
 
     monkeypatch.setattr(ppo_module, "ppo_update", sigterm_in_batch_two)
     with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
         train(tmp_path / "cut", tiny_config(checkpoint_every=4))
-    monkeypatch.setattr(offline, "_stop_reason", None)
+    monkeypatch.setattr(stopping, "_stop_reason", None)
     monkeypatch.setattr(ppo_module, "ppo_update", update)
     assert json.loads((tmp_path / "cut" / "results.json").read_text())["status"] == "interrupted"
     train(tmp_path / "cut", tiny_config(checkpoint_every=4), resume=True)
