@@ -19,7 +19,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from spoil_torchrl.data.minari_io import minari_dataset_path, write_minari
+from spoil_torchrl.data.minari_export import write_minari
+from spoil_torchrl.data.minari_io import minari_dataset_path
 from spoil_torchrl.data.prepare import prepare_dataset
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,8 @@ from spoil_torchrl.data.prepare import prepare_dataset
 from tests.data.helpers import make_arrays
 
 minari = pytest.importorskip("minari")
-from spoil_torchrl.data.minari_io import read_minari_roles, write_minari  # noqa: E402
+from spoil_torchrl.data.minari_export import write_minari  # noqa: E402
+from spoil_torchrl.data.minari_io import read_minari_roles  # noqa: E402
 
 LENGTHS = (3, 2, 4, 5, 1, 2)
 ENDS = ("timeout", "terminal", "timeout", "terminal", "timeout", "timeout")
