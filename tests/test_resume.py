@@ -108,14 +108,14 @@ def test_a_run_resumed_where_its_pretraining_would_differ_continues_from_the_sto
     """As if resumed on another CPU: a discriminator initialised differently from now on and another machine.
     The run continues from its stored pre-training, ends as the uninterrupted run and says where it ran; a run
     without a stored pre-training (made before they were stored) computes it again and is refused."""
-    from spoil_torchrl.algorithms import base
+    from spoil_torchrl.algorithms import discriminators
     from spoil_torchrl.runs import lifecycle
 
     run_dir, legacy = tmp_path / "run", tmp_path / "legacy"
     kill_when(tiny_pc1_dataset, run_dir, lambda d: (d / "checkpoints" / "training_state.pt").exists())
     shutil.copytree(run_dir, legacy)
     (legacy / "checkpoints" / "pretraining.pt").unlink()
-    make_discriminator = base.make_discriminator
+    make_discriminator = discriminators.make_discriminator
 
     def perturbed(*args, **kwargs):
         network = make_discriminator(*args, **kwargs)
@@ -123,7 +123,7 @@ def test_a_run_resumed_where_its_pretraining_would_differ_continues_from_the_sto
             next(network.parameters()).add_(1e-3)
         return network
 
-    monkeypatch.setattr(base, "make_discriminator", perturbed)
+    monkeypatch.setattr(discriminators, "make_discriminator", perturbed)
     monkeypatch.setattr(lifecycle, "current_machine", lambda: {"host": "elsewhere", "cpu": "another CPU"})
     run_short(tiny_pc1_dataset, run_dir, "resume=true")
     _same_run(uninterrupted, run_dir)

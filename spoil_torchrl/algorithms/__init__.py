@@ -25,9 +25,7 @@ from spoil_torchrl.algorithms.base import (
     EpisodeConstraint,
     PolicyTraining,
     Pretraining,
-    fit_support,
     no_pretraining,
-    train_discriminators,
 )
 from spoil_torchrl.algorithms.dice import (
     build_coptidice,
@@ -40,6 +38,7 @@ from spoil_torchrl.algorithms.dice import (
     pretrain_safedice,
     pretrain_spoildice,
 )
+from spoil_torchrl.algorithms.discriminators import fit_support, train_discriminators
 from spoil_torchrl.algorithms.imitation import (
     build_bc,
     build_dwbc_s,

@@ -9,7 +9,8 @@ from typing import Any
 
 import torch
 
-from spoil_torchrl.algorithms.base import BuildContext, fit_support, train_discriminators
+from spoil_torchrl.algorithms.base import BuildContext
+from spoil_torchrl.algorithms.discriminators import fit_support, train_discriminators
 from spoil_torchrl.data.constraint_costs import CONSTRAINT_ROLE_PREFIX
 from spoil_torchrl.objectives import PUDiscriminatorLoss
 from spoil_torchrl.objectives.spoildice import check_supports_intersect

@@ -17,11 +17,9 @@ from spoil_torchrl.algorithms.base import (
     Pretraining,
     adam,
     dice_stage,
-    fit_support,
-    frozen_networks,
-    train_discriminators,
 )
 from spoil_torchrl.algorithms.constraints import constraint_roles_of, fit_constraint_supports
+from spoil_torchrl.algorithms.discriminators import fit_support, frozen_networks, train_discriminators
 from spoil_torchrl.modules import make_value_network
 from spoil_torchrl.objectives import (
     COptiDICELoss,

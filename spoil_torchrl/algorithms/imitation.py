@@ -14,12 +14,10 @@ from spoil_torchrl.algorithms.base import (
     Pretraining,
     actor,
     adam,
-    fit_support,
-    frozen_networks,
-    train_discriminators,
     weighted_bc_stage,
 )
 from spoil_torchrl.algorithms.constraints import constraint_roles_of, fit_constraint_supports
+from spoil_torchrl.algorithms.discriminators import fit_support, frozen_networks, train_discriminators
 from spoil_torchrl.data.labeling import episode_stats
 from spoil_torchrl.errors import SettingsError
 from spoil_torchrl.modules import make_discriminator
