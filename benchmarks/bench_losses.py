@@ -31,13 +31,11 @@ CUDA backend), and each timing waits for the device before it stops. ``medium`` 
 from __future__ import annotations
 
 import argparse
-import itertools
 import statistics
 import time
 
 import torch
 from tensordict import TensorDict
-from torch import nn
 
 from spoil_torchrl.devices import training_device
 from spoil_torchrl.errors import SettingsError
@@ -56,9 +54,13 @@ from spoil_torchrl.trainers.compiled import (
 from spoil_torchrl.trainers.vectorized import VectorizedStepper
 
 try:  # run as a script (make bench) or imported from benchmarks/ on sys.path
+    from flops import count_flops, machine_peak, matmul_rate, synchronize
     from jax_peer import JaxStep, import_jax, jax_rate
+    from reference_step import ReferenceStep
 except ImportError:  # imported as benchmarks.bench_losses
+    from benchmarks.flops import count_flops, machine_peak, matmul_rate, synchronize
     from benchmarks.jax_peer import JaxStep, import_jax, jax_rate
+    from benchmarks.reference_step import ReferenceStep
 
 
 def make_batch(n: int, n_init: int, obs_dim: int, act_dim: int) -> TensorDict:
@@ -179,35 +181,6 @@ def sampling_seconds(batch_size: int, obs_dim: int, act_dim: int, repeats: int =
     return (time.perf_counter() - start) / repeats
 
 
-def synchronize(device) -> None:
-    """Wait for ``device``'s queued work (a CUDA device runs asynchronously); nothing on a CPU."""
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def count_flops(fn) -> int:
-    """FLOPs of ``fn()``, counted per operator with PyTorch's FLOP formulas
-    (``torch.utils.flop_counter.flop_registry``; its ``FlopCounterMode`` cannot be used: its module tracker
-    breaks on the penalty's ``autograd.grad``)."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-    from torch.utils.flop_counter import flop_registry
-
-    class Count(TorchDispatchMode):
-        total = 0
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            kwargs = kwargs or {}
-            out = func(*args, **kwargs)
-            formula = flop_registry.get(func._overloadpacket)
-            if formula is not None:
-                Count.total += formula(*args, **kwargs, out_val=out)
-            return out
-
-    with Count():
-        fn()
-    return Count.total
-
-
 def step_flops(reference: ReferenceStep, batch: TensorDict) -> int:
     """FLOPs of one step (forward, backward, gradient penalty) of the plain reference (the eager math)."""
     flops = count_flops(lambda: sum(reference.losses(batch.clone())).backward())
@@ -222,90 +195,6 @@ def compiled_form_flops(compiled: CompiledLibraryStep, batch: TensorDict) -> int
     params = detached(step_parameters(losses))
     inputs = step_inputs(losses, pure_losses(losses), batch.clone())
     return count_flops(lambda: update_gradients(losses)(params, inputs))
-
-
-def matmul_rate(batch_size: int, cells: list[int], obs_dim: int, seconds: float = 1.0, device="cpu") -> float:
-    """FLOP/s of ``device`` on the step's own matmul shapes (its MLP layers at 3x the batch, as nu runs)."""
-    dims = [obs_dim, *cells]
-    mats = [
-        (torch.randn(3 * batch_size, i, device=device), torch.randn(i, o, device=device))
-        for i, o in itertools.pairwise(dims)
-    ]
-    flops_per_round = sum(2 * a.shape[0] * a.shape[1] * b.shape[1] for a, b in mats)
-    for a, b in mats:  # warm-up
-        a @ b
-    synchronize(device)
-    rounds, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        for a, b in mats:
-            a @ b
-        rounds += 1
-        synchronize(device)
-    return rounds * flops_per_round / (time.perf_counter() - start)
-
-
-def machine_peak(size: int = 2048, seconds: float = 1.0, device="cpu") -> float:
-    """FLOP/s of ``device`` on a large square float32 product (``size`` x ``size``): the most any step's
-    products could reach there, whatever their shapes."""
-    a, b = torch.randn(size, size, device=device), torch.randn(size, size, device=device)
-    a @ b  # warm-up
-    synchronize(device)
-    rounds, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        a @ b
-        rounds += 1
-        synchronize(device)
-    return rounds * 2 * size**3 / (time.perf_counter() - start)
-
-
-class ReferenceStep:
-    """The same update in plain PyTorch: no tensordict, no LossModule; shares the library step's weights."""
-
-    def __init__(self, library: LibraryStep, lr: float = 3e-5) -> None:
-        self.nu = library.dice.get_stateful_net("nu_network", copy=True).module
-        actor = library.bc.get_stateful_net("actor_network", copy=True)
-        self.policy_net = actor.module[0].module  # MLP + NormalParams
-        self.dist_kwargs = {"low": -1.0, "high": 1.0}
-        probe = torch.zeros(1, library.obs_dim, device=library.dice.lagrange.device)
-        self.dist_class = type(actor.get_dist(TensorDict({"observation": probe}, [1])))
-        self.lagrange = nn.Parameter(library.dice.lagrange.detach().clone())
-        self.optims = [
-            torch.optim.Adam(self.nu.parameters(), lr=lr),
-            torch.optim.Adam([self.lagrange], lr=lr),
-            torch.optim.Adam(self.policy_net.parameters(), lr=lr),
-        ]
-
-    def losses(self, batch: TensorDict, gamma: float = 0.99, gp: float = 10.0):
-        obs, nxt = batch["unlabeled", "observation"], batch["unlabeled", "next", "observation"]
-        s0 = batch["init", "observation"]
-        n0, n = s0.shape[0], obs.shape[0]
-        v0, v, v_next = self.nu(torch.cat([s0, obs, nxt])).squeeze(-1).split([n0, n, n])
-        not_term = 1.0 - batch["unlabeled", "next", "terminated"].float().squeeze(-1)
-        support = batch["unlabeled", "safe_support"].squeeze(-1)
-        base = batch["unlabeled", "log_ratio_performant"].squeeze(-1) + gamma * v_next * not_term - v
-        adv_nu = base + self.lagrange.detach() * support
-        adv_lam = adv_nu.detach() + (self.lagrange - self.lagrange.detach()) * support
-        lme = lambda x: torch.logsumexp(x, 0) - torch.log(torch.tensor(float(x.numel()), device=x.device))  # noqa: E731
-        loss_nu = (1 - gamma) * v0.mean() + lme(adv_nu) - self.lagrange.detach()
-        loss_lam = (1 - gamma) * v0.detach().mean() + lme(adv_lam) - self.lagrange
-        # nu gradient penalty on unlabeled, init-unlabeled and s-s' interpolations
-        a1, a2 = torch.rand(n0, 1, device=obs.device), torch.rand(n, 1, device=obs.device)
-        pts = torch.cat([obs, a1 * s0 + (1 - a1) * obs[:n0], a2 * obs + (1 - a2) * nxt]).requires_grad_(True)
-        (g,) = torch.autograd.grad(self.nu(pts).sum(), pts, create_graph=True)
-        loss_nu = loss_nu + gp * g.norm(dim=-1).pow(2).mean()
-        w = torch.exp(adv_nu.detach() - adv_nu.detach().max())
-        w = w / w.mean()
-        loc, scale = self.policy_net(obs)
-        dist = self.dist_class(loc, scale, **self.dist_kwargs)
-        loss_actor = -(w * dist.log_prob(batch["unlabeled", "action"])).mean()
-        return loss_nu, loss_lam, loss_actor
-
-    def __call__(self, batch: TensorDict) -> None:
-        for optim in self.optims:
-            optim.zero_grad(set_to_none=True)
-        sum(self.losses(batch)).backward()
-        for optim in self.optims:
-            optim.step()
 
 
 def rate(step, batches: list[TensorDict], steps: int) -> float:

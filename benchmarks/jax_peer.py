@@ -1,7 +1,7 @@
 """The SpoilDICE + weighted-BC update written in JAX and jit-compiled whole: the peer ``bench_losses.py`` measures
 the library's step against (``make bench`` prints it when JAX is installed: ``pip install -e ".[bench]"``).
 
-The same math as ``bench_losses.ReferenceStep`` and the library's step, in the form a JAX user would write it:
+The same math as ``reference_step.ReferenceStep`` and the library's step, in the form a JAX user would write it:
 
 * nu, a ReLU MLP ([256, 256] by default) on the initial, current and next states (one pass), and its input
   gradient at the penalty's points (JAX's zeros are symbolic: the penalty's gradient skips the products on

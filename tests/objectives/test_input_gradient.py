@@ -60,7 +60,8 @@ def test_the_relu_chain_does_fewer_products_than_autograd():
     """Counted with PyTorch's FLOP formulas, at the bench's sizes: autograd's second derivative sends zeros back
     through the forward pass of every penalty point (docs/speed.md); the written-out chain does not."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-    from bench_losses import count_flops, make_batch
+    from bench_losses import make_batch
+    from flops import count_flops
 
     loss = SpoilDICELoss(make_value_network(28, hidden_cells=(256, 256)), gamma=0.99, gradient_penalty=10.0)
     batch = make_batch(512, 512, 28, 2)
