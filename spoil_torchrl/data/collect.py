@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 from tqdm.auto import tqdm
 
@@ -50,7 +51,9 @@ class Segment:
     Attributes:
         label: the policy type or pool name, e.g. ``"safe-high"`` (several segments may share a label).
         policy: ``"random"``, ``"zoo:<name>"`` (a committed policy of the task, see
-            :func:`spoil_torchrl.zoo.zoo_policy`) or the path of a policy / PPO checkpoint file.
+            :func:`spoil_torchrl.zoo.zoo_policy`), the path of a policy / PPO checkpoint file, or, in a circle
+            task, ``"ellipse:<a>,<b>"`` (the scripted :class:`~spoil_torchrl.zoo.path_follower.EllipseFollower`
+            round the ellipse with those half-axes).
         episodes: how many episodes to roll out.
 
     Examples:
@@ -72,12 +75,19 @@ class Segment:
             raise ValueError(f"segment {self.label!r}: episodes must be >= 1, got {self.episodes}")
 
 
-def resolve_policy(spec: str, env_id: str) -> ProbabilisticActor | None:
+def resolve_policy(spec: str, env_id: str) -> ProbabilisticActor | TensorDictModule | None:
     """The actor a :class:`Segment` ``policy`` names (``None`` for the random policy)."""
+    from spoil_torchrl.zoo.path_follower import ELLIPSE_PREFIX, ellipse_policy
     from spoil_torchrl.zoo.policy_files import load_policy, policy_path
 
     if spec == RANDOM_POLICY:
         return None
+    if spec.startswith(ELLIPSE_PREFIX):
+        if "Circle" not in env_id:
+            raise ValueError(
+                f"{spec!r}: the ellipse follower drives a circle task's point robot, not {env_id}"
+            )
+        return ellipse_policy(spec)
     return load_policy(policy_path(spec, env_id), env_id=env_id)[0]
 
 

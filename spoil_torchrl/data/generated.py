@@ -17,6 +17,9 @@ then returns the cached copy from :func:`~spoil_torchrl.data.generated_data_dir`
 * ``point-circle2-walls`` -- PointCircle2 with each wall's own cost (``cost_x_wall``, ``cost_y_wall``): the four
   typed pools and two demonstrators each trained against one wall's cost (``x-wall-safe``, ``y-wall-safe``),
   300 episodes each, for several constraints (``docs/several_constraints.md``).
+* ``point-circle2-ellipse-walls`` -- the same, with two scripted demonstrators in place of the trained ones:
+  each follows an ellipse that keeps one pair of walls and crosses the other on every lap (``x-wall-ellipse``,
+  ``y-wall-ellipse``; :class:`~spoil_torchrl.zoo.path_follower.EllipseFollower`).
 * ``half-cheetah-velocity-controlled`` -- the same four pools for SafetyHalfCheetahVelocity-v1 (2,000 episodes
   of 1,000 steps).
 * ``hopper-velocity-controlled`` -- the same four pools for SafetyHopperVelocity-v1 (2,000 episodes of at most
@@ -117,6 +120,19 @@ GENERATED_DATASETS: dict[str, GeneratedDataset] = {
             _typed(300) + tuple(Segment(wall, f"zoo:{wall}", 300) for wall in ("x-wall-safe", "y-wall-safe")),
             "PointCircle2 pools with each wall's own cost: the four policy types and two demonstrators trained "
             "against one wall's cost (x-wall-safe, y-wall-safe), 300 episodes each",
+            components=True,
+        ),
+        GeneratedDataset(
+            "point-circle2-ellipse-walls",
+            "SafetyPointCircle2-v0",
+            _typed(300)
+            + (
+                Segment("x-wall-ellipse", "ellipse:0.9,1.6", 300),
+                Segment("y-wall-ellipse", "ellipse:1.6,0.9", 300),
+            ),
+            "PointCircle2 pools with each wall's own cost: the four policy types and two scripted demonstrators "
+            "that keep one pair of walls and cross the other on every lap (ellipses with half-axes 0.9 and 1.6), "
+            "300 episodes each",
             components=True,
         ),
         GeneratedDataset(
