@@ -112,5 +112,5 @@ def fit_support(
 
 def frozen_networks(discriminators: Mapping[str, PUDiscriminatorLoss]) -> dict[str, torch.nn.Module]:
     """The frozen networks of trained discriminators (role -> loss), named ``C_<role>``: what a
-    :class:`Pretraining` keeps of them."""
+    :class:`~spoil_torchrl.algorithms.base.Pretraining` keeps of them."""
     return {f"C_{role}": loss.frozen_network() for role, loss in discriminators.items()}

@@ -53,7 +53,8 @@ class Segment:
         policy: ``"random"``, ``"zoo:<name>"`` (a committed policy of the task, see
             :func:`spoil_torchrl.zoo.zoo_policy`), the path of a policy / PPO checkpoint file, or, in a circle
             task, ``"ellipse:<a>,<b>"`` (the scripted :class:`~spoil_torchrl.zoo.path_follower.EllipseFollower`
-            round the ellipse with those half-axes).
+            round the ellipse with those half-axes; it is not a policy file, so the commands that load policy
+            files, such as ``recipes/score_checkpoints.py``, do not take it).
         episodes: how many episodes to roll out.
 
     Examples:
@@ -83,7 +84,7 @@ def resolve_policy(spec: str, env_id: str) -> ProbabilisticActor | TensorDictMod
     if spec == RANDOM_POLICY:
         return None
     if spec.startswith(ELLIPSE_PREFIX):
-        if "Circle" not in env_id:
+        if not env_id.startswith("SafetyPointCircle"):
             raise ValueError(
                 f"{spec!r}: the ellipse follower drives a circle task's point robot, not {env_id}"
             )

@@ -1,4 +1,5 @@
-"""The named datasets this project makes itself from the committed policies (``"generated:<name>"``).
+"""The named datasets this project makes itself from the committed policies (``"generated:<name>"``) and,
+for several constraints, a scripted demonstrator (:mod:`spoil_torchrl.zoo.path_follower`).
 
 DSRL files cannot be downloaded on every machine, so the realistic experiments stand on data rolled out here,
 as the paper made its Safety-Gymnasium datasets (appendix F.2). Each entry of :data:`GENERATED_DATASETS` says
@@ -63,12 +64,17 @@ class GeneratedDataset:
         return sum(s.episodes for s in self.segments)
 
     def fingerprint(self, num_envs: int) -> str:
-        """A hash of everything that determines the file's content: the recipe, ``num_envs`` and the bytes of
-        every committed policy it rolls out (a policy re-exported under the same name makes the file again)."""
+        """A hash of everything that determines the file's content: the recipe, ``num_envs``, the bytes of
+        every committed policy it rolls out (a policy re-exported under the same name makes the file again) and,
+        where it rolls out a scripted ellipse follower, the source of :mod:`spoil_torchrl.zoo.path_follower`
+        (the follower changed makes the file again)."""
+        from spoil_torchrl.zoo import path_follower
         from spoil_torchrl.zoo.policy_files import zoo_policy
 
         policies = sorted({s.policy for s in self.segments if s.policy.startswith("zoo:")})
         digests = [hashlib.sha256(zoo_policy(self.env_id, p[4:]).read_bytes()).hexdigest() for p in policies]
+        if any(s.policy.startswith(path_follower.ELLIPSE_PREFIX) for s in self.segments):
+            digests.append(hashlib.sha256(Path(path_follower.__file__).read_bytes()).hexdigest())
         recipe = [self.env_id, self.seed, num_envs, [asdict(s) for s in self.segments], digests]
         text = json.dumps(recipe + (["components"] if self.components else []))
         return hashlib.sha256(text.encode()).hexdigest()[:16]

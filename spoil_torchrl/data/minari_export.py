@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from spoil_torchrl.data.episodes import CONSTRAINTS_KEY, DatasetError, episodes_from_arrays  # noqa: F401
+from spoil_torchrl.data.episodes import CONSTRAINTS_KEY, DatasetError
 from spoil_torchrl.data.minari_io import METADATA_KEY, ROLE_PREFIX, import_minari
 from spoil_torchrl.envs.cost_components import COMPONENT_PREFIX
 
@@ -73,8 +73,9 @@ def write_minari(
         ...           "actions": np.zeros((3, 1), np.float32), "rewards": np.ones(3, np.float32),
         ...           "costs": np.array([0, 1, 0], np.float32), "terminals": np.zeros(3, bool),
         ...           "timeouts": np.array([0, 1, 1], bool)}
-        >>> episodes = episodes_from_arrays(arrays)
+        >>> from spoil_torchrl.data.episodes import episodes_from_arrays
         >>> from spoil_torchrl.data.minari_io import read_minari, read_minari_roles
+        >>> episodes = episodes_from_arrays(arrays)
         >>> dataset = write_minari(episodes, "demo/tiny-v0", roles={"safe": torch.tensor([1])})
         >>> dataset.total_episodes, dataset.total_steps
         (2, 3)

@@ -237,6 +237,6 @@ def _roles(per_episode: list[dict]) -> dict[str, torch.Tensor]:
 def read_minari_roles(dataset_id: str) -> dict[str, torch.Tensor]:
     """Episode ids per role from the episodes' ``role_<name>`` flags (``{}`` when the dataset has none).
 
-    Examples are in :func:`write_minari`.
+    Examples are in :func:`~spoil_torchrl.data.minari_export.write_minari`.
     """
     return _roles(_episode_metadata(_load(dataset_id, download=False)))

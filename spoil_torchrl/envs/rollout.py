@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 from tqdm.auto import tqdm
@@ -34,7 +35,7 @@ def reset_seed(seed: int, env_index: int) -> int:
 
 def rollout(
     env_id: str,
-    policy: ProbabilisticActor | None,
+    policy: ProbabilisticActor | TensorDictModule | None,
     episodes: int,
     *,
     seed: int,
@@ -50,7 +51,9 @@ def rollout(
 
     Args:
         env_id: a task of :data:`spoil_torchrl.tasks.ENV_TASKS`.
-        policy: a TorchRL actor reading ``"observation"`` and writing ``"action"``.
+        policy: a TorchRL actor, or any module with a parameter (it gives the device), reading
+            ``"observation"`` and writing ``"action"`` (e.g. the scripted
+            :class:`~spoil_torchrl.zoo.path_follower.EllipseFollower`).
         episodes: number of complete episodes.
         seed: seeds the environments' resets and the action sampling.
         num_envs: environments stepped in lockstep (the policy runs once per step on all of them).

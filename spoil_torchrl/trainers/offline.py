@@ -370,7 +370,7 @@ def offline_trainer(
     trainer.progress = StepProgress(total_steps, progress_label, enabled=progress_bar)
     trainer.register_op("post_steps", lambda: trainer.progress.update(trainer.collected_frames))
     trainer.register_op("process_optim_batch", SampleBuffers(sample))
-    trainer.register_op("post_steps", raise_if_stopped)  # see stop_on_signals
+    trainer.register_op("post_steps", raise_if_stopped)  # see spoil_torchrl.stopping.stop_on_signals
 
     def stop_if_diverged(optim_steps: int, losses: TensorDictBase | None) -> None:  # the chunk's mean losses
         for key, value in {} if losses is None else losses.items():

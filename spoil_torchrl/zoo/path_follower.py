@@ -39,7 +39,9 @@ ELLIPSE_PREFIX = "ellipse:"
 
 
 def circle_pose(observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The robot's position ``x``, ``y`` and heading (radians) from a circle task's flat observation ``[..., 28]``.
+    """The robot's position ``x``, ``y`` and heading (radians) from a circle task's flat observation ``[..., 28]``
+    (NaN position where the centre is beyond the lidar's range of 6, which the circle tasks' start placements and
+    the followed ellipses never reach).
 
     Examples:
         >>> obs = torch.zeros(28)
@@ -61,7 +63,8 @@ def circle_pose(observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, 
     following = lidar.gather(-1, ((index + 1) % LIDAR_BINS).unsqueeze(-1)).squeeze(-1)
     share = torch.where(strength > 0, following / strength.clamp_min(1e-12), torch.zeros_like(strength))
     bearing = (index + share) * (2 * math.pi / LIDAR_BINS)  # the centre's direction in the robot's frame
-    distance = LIDAR_MAX_DIST * (1 - strength)
+    # beyond the lidar's range every bin reads 0 and no pose can be read: NaN, which a rollout refuses
+    distance = torch.where(strength > 0, LIDAR_MAX_DIST * (1 - strength), torch.full_like(strength, math.nan))
     # the centre at distance * (cos, sin)(bearing) in the robot's frame: the robot at minus that in the world's
     world_bearing = bearing + heading
     return -distance * torch.cos(world_bearing), -distance * torch.sin(world_bearing), heading
