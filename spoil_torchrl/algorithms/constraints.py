@@ -13,7 +13,7 @@ from spoil_torchrl.algorithms.base import BuildContext
 from spoil_torchrl.algorithms.discriminators import fit_support, train_discriminators
 from spoil_torchrl.data.constraint_costs import CONSTRAINT_ROLE_PREFIX
 from spoil_torchrl.objectives import PUDiscriminatorLoss
-from spoil_torchrl.objectives.spoildice import check_supports_intersect
+from spoil_torchrl.objectives.support import check_supports_intersect
 
 
 def constraint_roles_of(buffers) -> list[str]:
@@ -44,7 +44,7 @@ def fit_constraint_supports(
     as ``safe_support_<name>`` on every role of ``stacked`` and ``intersected``. ``safe_support`` is then the K
     indicators ``[n, K]`` on the ``stacked`` roles (SpoilDICE's D_U: one lambda_k each) and their product, the
     indicator of the intersection, on the ``intersected`` ones. Supports with no transition of the first of these
-    roles in common are refused (:func:`~spoil_torchrl.objectives.check_supports_intersect`).
+    roles in common are refused (:func:`~spoil_torchrl.objectives.support.check_supports_intersect`).
 
     Returns the discriminators (role -> loss), the indicator columns, and per-constraint diagnostics
     (``support_share_<role>_<name>``, ``support_threshold_<name>``; ``support_share_<role>`` of the

@@ -19,6 +19,7 @@ from spoil_torchrl.objectives.functional import (
 )
 from spoil_torchrl.objectives.keys import get_role, role_entry, role_key
 from spoil_torchrl.objectives.pure import Tensors
+from spoil_torchrl.objectives.support import check_support_indicator
 
 
 def support_term(lagrange: torch.Tensor, support: torch.Tensor) -> torch.Tensor:
@@ -158,51 +159,6 @@ def spoildice_diagnostics(
             "nu_init": init_nu.detach().mean(),
             "advantage_mean": advantage.detach().mean(),
         }
-
-
-def check_support_indicator(support: torch.Tensor, key: NestedKey) -> None:
-    """Raise a clear ``ValueError`` unless ``support`` (read from ``key``) is a 0/1 indicator (Eq. 13).
-
-    The check is an assertion on the tensor's device (:func:`torch._assert_async`): on a CPU it raises at once,
-    on a GPU it fails the device's stream later, so a training step never waits to read the answer back.
-
-    Examples:
-        >>> check_support_indicator(torch.tensor([0.0, 1.0]), "safe_support")
-    """
-    if torch.compiler.is_compiling():
-        return
-    message = (
-        f"{key} must be a 0/1 indicator (Eq. 13); got other values. "
-        "Write it with SupportEstimator, or point set_keys(support=...) at the right entry."
-    )
-    indicator = ((support == 0) | (support == 1)).all()
-    try:  # only the assertion's own failure is the message's
-        torch._assert_async(indicator, message)
-    except RuntimeError:  # a CPU's answer, at once
-        raise ValueError(message) from None
-
-
-def check_supports_intersect(support: torch.Tensor, key: NestedKey) -> None:
-    """Raise a clear ``ValueError`` when ``support`` (``[n, K]`` indicators, one column per constraint, read from
-    ``key``) has no row inside every support: nothing can then be imitated within all K constraints, and the
-    dual of ``docs/several_constraints.md`` is unbounded below. Check it on all of D_U once it is annotated (a
-    batch may miss the intersection by chance).
-
-    Examples:
-        >>> check_supports_intersect(torch.tensor([[1.0, 0.0], [1.0, 1.0]]), "safe_support")
-        >>> check_supports_intersect(torch.tensor([[1.0, 0.0], [0.0, 1.0]]), "s")  # doctest: +ELLIPSIS
-        Traceback (most recent call last):
-        ...
-        ValueError: s: no transition is inside all 2 supports (share inside each: 50.0 %, 50.0 %); no policy ...
-    """
-    support = support.reshape(-1, support.shape[-1])
-    if bool((support.prod(-1) > 0).any()):
-        return
-    each = ", ".join(f"{100 * float(column.float().mean()):.1f} %" for column in support.T)
-    raise ValueError(
-        f"{key}: no transition is inside all {support.shape[-1]} supports (share inside each: {each}); "
-        "no policy can respect every constraint on this data"
-    )
 
 
 #: What writes the annotations :class:`SpoilDICELoss` reads, said when D_U lacks them.

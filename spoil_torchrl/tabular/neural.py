@@ -30,7 +30,7 @@ from spoil_torchrl.objectives import (
     WeightedBCLoss,
     annotate,
 )
-from spoil_torchrl.objectives.spoildice import check_supports_intersect
+from spoil_torchrl.objectives.support import check_supports_intersect
 from spoil_torchrl.tabular.cmdp import occupancy
 from spoil_torchrl.tabular.problems import DualDemoProblem
 from spoil_torchrl.tabular.sampling import one_hot, sample_initial_states, sample_transitions

@@ -251,7 +251,7 @@ def test_several_constraints_refuse_a_support_of_another_width_and_bad_counts(ba
     for bad in (0, 1.5, True):
         with pytest.raises(ValueError, match="constraints must be an integer >= 1"):
             _loss(constraints=bad)
-    from spoil_torchrl.objectives.spoildice import check_supports_intersect
+    from spoil_torchrl.objectives.support import check_supports_intersect
 
     disjoint = torch.tensor([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     with pytest.raises(ValueError, match=r"no transition is inside all 3 supports .*50.0 %, 50.0 %, 50.0 %"):
