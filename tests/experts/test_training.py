@@ -78,15 +78,13 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
     from spoil_torchrl.experts.replay import read_replay
     from spoil_torchrl.zoo import load_policy
 
-    train(
-        tmp_path / "whole",
-        tiny_config(
-            normalize_observations=normalize,
-            num_envs=num_envs,
-            frames_per_batch=500 * num_envs,
-            total_frames=2000 * num_envs,
-        ),
+    settings = dict(
+        normalize_observations=normalize,
+        num_envs=num_envs,
+        frames_per_batch=500 * num_envs,
+        total_frames=2000 * num_envs,
     )
+    train(tmp_path / "whole", tiny_config(**settings))
     update = ppo_module.ppo_update
 
     def killed_in_batch_four(learner, batch, config, index, cost, **kwargs):
@@ -96,28 +94,11 @@ def test_killed_training_resumes_to_the_uninterrupted_policies(tmp_path, monkeyp
 
     monkeypatch.setattr(ppo_module, "ppo_update", killed_in_batch_four)
     with pytest.raises(KeyboardInterrupt):
-        train(
-            tmp_path / "cut",
-            tiny_config(
-                normalize_observations=normalize,
-                num_envs=num_envs,
-                frames_per_batch=500 * num_envs,
-                total_frames=2000 * num_envs,
-            ),
-        )
+        train(tmp_path / "cut", tiny_config(**settings))
     assert json.loads((tmp_path / "cut" / "results.json").read_text())["status"] == "interrupted"
     assert len(without_times(tmp_path / "cut" / "log.jsonl")) == 3
     monkeypatch.setattr(ppo_module, "ppo_update", update)
-    train(
-        tmp_path / "cut",
-        tiny_config(
-            normalize_observations=normalize,
-            num_envs=num_envs,
-            frames_per_batch=500 * num_envs,
-            total_frames=2000 * num_envs,
-        ),
-        resume=True,
-    )
+    train(tmp_path / "cut", tiny_config(**settings), resume=True)
 
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     names = sorted(p.name for p in whole.glob("ckpt_*.pt"))
