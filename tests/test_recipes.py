@@ -157,6 +157,13 @@ def test_spoildice_and_fbc_with_two_constraints_end_to_end_and_other_methods_ref
     assert diagnostics["support_share_unlabeled"] <= min(
         diagnostics["support_share_unlabeled_a"], diagnostics["support_share_unlabeled_b"]
     )  # the intersection
+    for where in (results["dice_diagnostics"]["support"], results["performant_support"]):
+        by = where["by_constraint"]  # each cut against each constraint's own cost, and their intersection
+        assert set(by["costly_kept"]) == {"a", "b", "all"} and set(by["costly"]) == {"a", "b"}
+        assert all(
+            by["costly_kept"]["all"][j] <= min(by["costly_kept"]["a"][j], by["costly_kept"]["b"][j])
+            for j in ("a", "b")
+        )
     logged = (run_dir / "logs").rglob("*lagrange_1*")
     assert any(logged), "no per-constraint multiplier was logged"
     proc = run_command(

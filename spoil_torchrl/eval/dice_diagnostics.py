@@ -26,6 +26,7 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDict
 
+from spoil_torchrl.data.episodes import CONSTRAINTS_KEY
 from spoil_torchrl.objectives.functional import bellman_backup, effective_sample_size
 
 #: Transitions of the DICE role the diagnostics are computed on (a fixed, seeded subsample).
@@ -107,6 +108,66 @@ def support_accuracy(
             for name, mask in (groups or {}).items()
         },
     }
+
+
+def support_by_constraint(data: TensorDict) -> dict | None:
+    """The support estimate against each constraint's own true cost (several constraints,
+    ``docs/several_constraints.md``).
+
+    ``costly_kept[cut][j]`` is the share of the transitions with cost > 0 on constraint ``j`` that the cut of
+    constraint ``cut`` (the annotation ``safe_support_<cut>``) keeps; the row ``"all"`` is the whole support
+    ``safe_support`` (the intersection of the cuts, or the one cut of a merged safe set). ``costly[j]`` is the
+    share of transitions with cost > 0 on ``j``. A cut that tells its constraint apart keeps few of its own
+    costly transitions (the diagonal) and those of the other constraints as far as its safe set holds them; a
+    cut that keeps both alike cannot tell the constraints apart. ``None`` when ``data`` carry no support or no
+    per-constraint costs (``("next", "constraint_costs", <name>)``).
+
+    Examples:
+        >>> a, b = torch.tensor([[0.0], [1.0], [1.0], [1.0]]), torch.tensor([[1.0], [0.0], [1.0], [0.0]])
+        >>> data = TensorDict({"safe_support_a": a, "safe_support_b": b, "safe_support": torch.cat([a, b], -1),
+        ...     "next": {"constraint_costs": {"a": torch.tensor([[1.0], [0.0], [0.0], [0.0]]),
+        ...                                   "b": torch.tensor([[0.0], [1.0], [1.0], [0.0]])}}}, [4])
+        >>> support_by_constraint(data)
+        {'costly': {'a': 0.25, 'b': 0.5}, 'costly_kept': {'a': {'a': 0.0, 'b': 1.0}, 'b': {'a': 1.0, 'b': 0.5}, \
+'all': {'a': 0.0, 'b': 0.5}}}
+    """
+    costs = data.get(("next", CONSTRAINTS_KEY), None)
+    if costs is None or "safe_support" not in data.keys():
+        return None
+    names = list(costs.keys())
+    costly = {j: costs.get(j).reshape(-1) > 0 for j in names}
+    cuts = sorted(k.removeprefix("safe_support_") for k in data.keys() if k.startswith("safe_support_"))
+    inside = {k: data.get(f"safe_support_{k}").reshape(-1) > 0.5 for k in cuts}
+    inside["all"] = data.get("safe_support").prod(-1).reshape(-1) > 0.5
+
+    def kept(mask: torch.Tensor, of: torch.Tensor) -> float:
+        return float(mask[of].double().mean()) if bool(of.any()) else 0.0
+
+    return {
+        "costly": {j: float(costly[j].double().mean()) for j in names},
+        "costly_kept": {k: {j: kept(mask, costly[j]) for j in names} for k, mask in inside.items()},
+    }
+
+
+def annotated_support_accuracy(
+    data: TensorDict, pools: Mapping[str, torch.Tensor] | None = None, cost_key=("next", "cost")
+) -> dict:
+    """:func:`support_accuracy` of the support annotated on ``data`` (``safe_support``; with several constraints
+    the intersection of its columns) against the true cost at ``cost_key``, per source of ``pools``, and with
+    several constraints each cut against each constraint's cost (``by_constraint``, :func:`support_by_constraint`).
+
+    Examples:
+        >>> data = TensorDict({"safe_support": torch.tensor([[1.0], [0.0]]), "episode": torch.tensor([0, 1]),
+        ...                    "next": {"cost": torch.tensor([[0.0], [1.0]])}}, [2])
+        >>> annotated_support_accuracy(data, {"first": torch.tensor([0])})["kept_by_group"]
+        {'first': 1.0}
+    """
+    support = data.get("safe_support").prod(-1, keepdim=True)  # several constraints: the intersection
+    out = support_accuracy(support, data.get(cost_key), source_masks(data.get("episode"), pools))
+    by_constraint = support_by_constraint(data)
+    if by_constraint is not None:
+        out["by_constraint"] = by_constraint
+    return out
 
 
 def source_masks(episode: torch.Tensor, pools: Mapping[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
@@ -212,10 +273,7 @@ def dice_diagnostics(
         lagrange = loss.lagrange.detach()
         out["lagrange"] = float(lagrange) if lagrange.ndim == 0 else lagrange.tolist()
     if "safe_support" in data.keys():
-        support = data.get("safe_support")
-        if support.shape[-1] > 1:  # several constraints: the intersection
-            support = support.prod(-1, keepdim=True)
-        out["support"] = support_accuracy(support, cost, source_masks(data.get("episode"), pools))
+        out["support"] = annotated_support_accuracy(data, pools, cost_key)
     return out
 
 

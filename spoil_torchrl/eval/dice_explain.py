@@ -86,12 +86,42 @@ def explain(diag: Mapping, performant_support: Mapping | None = None) -> str:
             f"The support estimate keeps {_pct(s['kept'])} of {diag['role']}; {_pct(s['costly_among_kept'])} of the "
             f"kept transitions have cost > 0, and it lets in {_pct(s['costly_kept'])} of the costly ones."
         )
+        if "by_constraint" in s:
+            lines.append(_by_constraint_sentence(s["by_constraint"]))
     if performant_support is not None:
         lines.append(f"It keeps {_pct(performant_support['kept'])} of D_P's transitions.")
     lines.append(
         f"The effective sample size of the weights is {_pct(diag['effective_sample_size'])} of the transitions."
     )
     return "\n".join(lines)
+
+
+def _by_constraint_sentence(by_constraint: Mapping) -> str:
+    """One sentence on each cut (or the one support of a merged safe set) against each constraint's cost.
+
+    Examples:
+        >>> print(_by_constraint_sentence({"costly": {"a": 0.2, "b": 0.3},
+        ...     "costly_kept": {"a": {"a": 0.1, "b": 0.6}, "b": {"a": 0.5, "b": 0.5}, "all": {"a": 0.05, "b": 0.3}}}))
+        ... # doctest: +NORMALIZE_WHITESPACE
+        Of the transitions costly on a / b, the a cut lets in 10 % / 60 %, the b cut 50 % / 50 %,
+        their intersection 5 % / 30 % (a cut that lets in as many of its own constraint's costly transitions as of
+        the others' does not tell its constraint apart).
+    """
+    names = list(by_constraint["costly"])
+    rows = by_constraint["costly_kept"]
+
+    def shares(cut: str) -> str:
+        return " / ".join(_pct(rows[cut][j]) for j in names)
+
+    cuts = [c for c in rows if c != "all"]
+    if not cuts:  # one support for all constraints (a merged safe set)
+        return f"Of the transitions costly on {' / '.join(names)}, the support lets in {shares('all')}."
+    parts = [f"the {cuts[0]} cut lets in {shares(cuts[0])}", *(f"the {c} cut {shares(c)}" for c in cuts[1:])]
+    return (
+        f"Of the transitions costly on {' / '.join(names)}, {', '.join(parts)}, their intersection "
+        f"{shares('all')} (a cut that lets in as many of its own constraint's costly transitions as of the "
+        "others' does not tell its constraint apart)."
+    )
 
 
 class NotADiceRun(ValueError):

@@ -31,12 +31,7 @@ from spoil_torchrl.data import DualDemoBuffers
 from spoil_torchrl.data.parallel import Job
 from spoil_torchrl.divergence import check_finite
 from spoil_torchrl.eval import Evaluator, RolloutWriter
-from spoil_torchrl.eval.dice_diagnostics import (
-    dice_diagnostics,
-    source_masks,
-    summary_scalars,
-    support_accuracy,
-)
+from spoil_torchrl.eval.dice_diagnostics import annotated_support_accuracy, dice_diagnostics, summary_scalars
 from spoil_torchrl.eval.dice_explain import explain
 from spoil_torchrl.eval.mcap_resume import continue_rollouts
 from spoil_torchrl.precision import matmul_check
@@ -160,8 +155,7 @@ def performant_support(buffers, pools) -> dict | None:
     performant = buffers["performant"].storage[:]
     if "safe_support" not in performant.keys():
         return None
-    groups = source_masks(performant["episode"], pools)
-    return support_accuracy(performant["safe_support"], performant["next", "cost"], groups)
+    return annotated_support_accuracy(performant, pools)
 
 
 def rollout_job(run: PretrainedRun) -> Job:
