@@ -47,6 +47,10 @@ SETTING_CASES = [
     ({"dataset": {"n_unlabeled": -5}}, "dataset.n_unlabeled = -5"),
     ({"dataset": {"cost_threshold": -1.0}}, "dataset.cost_threshold = -1.0"),
     ({"dataset": {"scheme": "magic"}}, "dataset.scheme = 'magic'"),
+    (
+        {"algo": {"name": "spoildice"}, "dataset": {"constraints": ["x_wall", "all"]}},
+        "dataset.constraints = ['x_wall', 'all']: expected null or a list of distinct constraint names",
+    ),
     ({"seed": -1}, "seed = -1"),
     ({"normalize_observations": "no"}, "normalize_observations = 'no': expected true or false"),
     ({"progress": 0}, "progress = 0: expected true or false"),

@@ -31,6 +31,8 @@ from spoil_torchrl.objectives.functional import bellman_backup, effective_sample
 
 #: Transitions of the DICE role the diagnostics are computed on (a fixed, seeded subsample).
 DEFAULT_SAMPLE = 10_000
+#: The row of :func:`support_by_constraint` for the whole support (no constraint may take this name).
+ALL_CUTS = "all"
 #: A Bellman term whose standard deviation is below this (in nats) moves the weights by less than ~10 %.
 FLAT_SPREAD = 0.1
 
@@ -80,6 +82,12 @@ def weight_shares(weights: torch.Tensor, groups: Mapping[str, torch.Tensor]) -> 
     }
 
 
+def _share_kept(inside: torch.Tensor, of: torch.Tensor) -> float:
+    """The share of the transitions of mask ``of`` that mask ``inside`` keeps (0 when ``of`` is empty)."""
+    of = of.reshape(-1)
+    return float(inside.reshape(-1)[of].double().mean()) if bool(of.any()) else 0.0
+
+
 def support_accuracy(
     support: torch.Tensor, cost: torch.Tensor, groups: Mapping[str, torch.Tensor] | None = None
 ) -> dict:
@@ -103,10 +111,7 @@ def support_accuracy(
         "costly_among_kept": float((inside & costly).sum()) / n_inside if n_inside else 0.0,
         "costly_kept": float((inside & costly).sum()) / n_costly if n_costly else 0.0,
         "costly": float(costly.double().mean()),
-        "kept_by_group": {
-            name: float(inside[mask.reshape(-1)].double().mean()) if bool(mask.any()) else 0.0
-            for name, mask in (groups or {}).items()
-        },
+        "kept_by_group": {name: _share_kept(inside, mask) for name, mask in (groups or {}).items()},
     }
 
 
@@ -119,17 +124,18 @@ def support_by_constraint(data: TensorDict) -> dict | None:
     ``safe_support`` (the intersection of the cuts, or the one cut of a merged safe set). ``costly[j]`` is the
     share of transitions with cost > 0 on ``j``. A cut that tells its constraint apart keeps few of its own
     costly transitions (the diagonal) and those of the other constraints as far as its safe set holds them; a
-    cut that keeps both alike cannot tell the constraints apart. ``None`` when ``data`` carry no support or no
-    per-constraint costs (``("next", "constraint_costs", <name>)``).
+    cut that keeps both alike cannot tell the constraints apart. A constraint with no costly transition gets 0
+    in every row (``costly[j] == 0`` tells it from a cut that rejects them all). ``None`` when ``data`` carry no
+    support or no per-constraint costs (``("next", "constraint_costs", <name>)``).
 
     Examples:
-        >>> a, b = torch.tensor([[0.0], [1.0], [1.0], [1.0]]), torch.tensor([[1.0], [0.0], [1.0], [0.0]])
+        >>> a, b = torch.tensor([[0.0], [1.0], [1.0], [0.0]]), torch.tensor([[1.0], [0.0], [1.0], [1.0]])
         >>> data = TensorDict({"safe_support_a": a, "safe_support_b": b, "safe_support": torch.cat([a, b], -1),
         ...     "next": {"constraint_costs": {"a": torch.tensor([[1.0], [0.0], [0.0], [0.0]]),
-        ...                                   "b": torch.tensor([[0.0], [1.0], [1.0], [0.0]])}}}, [4])
-        >>> support_by_constraint(data)
-        {'costly': {'a': 0.25, 'b': 0.5}, 'costly_kept': {'a': {'a': 0.0, 'b': 1.0}, 'b': {'a': 1.0, 'b': 0.5}, \
-'all': {'a': 0.0, 'b': 0.5}}}
+        ...                                   "b": torch.tensor([[0.0], [1.0], [1.0], [1.0]])}}}, [4])
+        >>> support_by_constraint(data)  # cut a keeps 2 of the 3 b-costly steps, cut b the a-costly one
+        {'costly': {'a': 0.25, 'b': 0.75}, 'costly_kept': {'a': {'a': 0.0, 'b': 0.6666666666666666}, \
+'b': {'a': 1.0, 'b': 0.6666666666666666}, 'all': {'a': 0.0, 'b': 0.3333333333333333}}}
     """
     costs = data.get(("next", CONSTRAINTS_KEY), None)
     if costs is None or "safe_support" not in data.keys():
@@ -138,14 +144,12 @@ def support_by_constraint(data: TensorDict) -> dict | None:
     costly = {j: costs.get(j).reshape(-1) > 0 for j in names}
     cuts = sorted(k.removeprefix("safe_support_") for k in data.keys() if k.startswith("safe_support_"))
     inside = {k: data.get(f"safe_support_{k}").reshape(-1) > 0.5 for k in cuts}
-    inside["all"] = data.get("safe_support").prod(-1).reshape(-1) > 0.5
-
-    def kept(mask: torch.Tensor, of: torch.Tensor) -> float:
-        return float(mask[of].double().mean()) if bool(of.any()) else 0.0
-
+    if ALL_CUTS in inside:
+        raise ValueError(f"a constraint named {ALL_CUTS!r}: the name of the whole support's row is taken")
+    inside[ALL_CUTS] = data.get("safe_support").prod(-1).reshape(-1) > 0.5
     return {
         "costly": {j: float(costly[j].double().mean()) for j in names},
-        "costly_kept": {k: {j: kept(mask, costly[j]) for j in names} for k, mask in inside.items()},
+        "costly_kept": {k: {j: _share_kept(mask, costly[j]) for j in names} for k, mask in inside.items()},
     }
 
 

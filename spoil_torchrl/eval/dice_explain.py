@@ -19,7 +19,7 @@ import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from spoil_torchrl.eval.dice_diagnostics import FLAT_SPREAD
+from spoil_torchrl.eval.dice_diagnostics import ALL_CUTS, FLAT_SPREAD
 
 
 def _pct(x: float) -> str:
@@ -107,19 +107,19 @@ def _by_constraint_sentence(by_constraint: Mapping) -> str:
         their intersection 5 % / 30 % (a cut that lets in as many of its own constraint's costly transitions as of
         the others' does not tell its constraint apart).
     """
-    names = list(by_constraint["costly"])
+    names, costly = list(by_constraint["costly"]), by_constraint["costly"]
     rows = by_constraint["costly_kept"]
 
-    def shares(cut: str) -> str:
-        return " / ".join(_pct(rows[cut][j]) for j in names)
+    def shares(cut: str) -> str:  # "-" for a constraint with no costly transition to keep
+        return " / ".join(_pct(rows[cut][j]) if costly[j] > 0 else "-" for j in names)
 
-    cuts = [c for c in rows if c != "all"]
+    cuts = [c for c in rows if c != ALL_CUTS]
     if not cuts:  # one support for all constraints (a merged safe set)
-        return f"Of the transitions costly on {' / '.join(names)}, the support lets in {shares('all')}."
+        return f"Of the transitions costly on {' / '.join(names)}, the support lets in {shares(ALL_CUTS)}."
     parts = [f"the {cuts[0]} cut lets in {shares(cuts[0])}", *(f"the {c} cut {shares(c)}" for c in cuts[1:])]
     return (
         f"Of the transitions costly on {' / '.join(names)}, {', '.join(parts)}, their intersection "
-        f"{shares('all')} (a cut that lets in as many of its own constraint's costly transitions as of the "
+        f"{shares(ALL_CUTS)} (a cut that lets in as many of its own constraint's costly transitions as of the "
         "others' does not tell its constraint apart)."
     )
 

@@ -16,6 +16,7 @@ from spoil_torchrl.data.parallel import available_cores
 from spoil_torchrl.data.prepare import SCHEMES
 from spoil_torchrl.devices import training_device
 from spoil_torchrl.errors import SettingsError
+from spoil_torchrl.eval.dice_diagnostics import ALL_CUTS
 from spoil_torchrl.modules.actor import CONTINUOUS_DISTRIBUTIONS, DISTRIBUTIONS
 from spoil_torchrl.objectives.input_gradient import PENALTY_FORMS
 from spoil_torchrl.precision import MATMUL_PRECISIONS
@@ -90,10 +91,11 @@ DATASET_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
                 isinstance(v, (list, tuple))
                 and len(v) >= 1
                 and len(set(v)) == len(v)
-                and all(isinstance(n, str) and n.isidentifier() for n in v)
+                and all(isinstance(n, str) and n.isidentifier() and n != ALL_CUTS for n in v)
             )
         ),
-        "null or a list of distinct constraint names (the data's cost_<name> components)",
+        f"null or a list of distinct constraint names (the data's cost_<name> components; not {ALL_CUTS!r}, "
+        "which names the whole support in the diagnostics)",
     ),
     "n_safe_per_constraint": (optional(positive_int), "null or an integer >= 1"),
     "constraint_pools": (

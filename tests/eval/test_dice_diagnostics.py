@@ -178,48 +178,48 @@ def test_diagnostics_leave_the_global_random_stream_alone():
 
 
 def test_several_constraints_report_each_cut_against_each_constraints_cost():
-    """With two cuts, the support is their intersection and each cut is set against each constraint's own cost:
-    cut a rejects the a-costly step and keeps the b-costly one, cut b keeps every a-costly step."""
+    """With two cuts, the support is their intersection and each cut is set against each constraint's own cost
+    (rows: cuts, columns: constraints; the off-diagonal entries differ, so a transposed table fails)."""
     batch = _batch()
     a_cut = torch.tensor([1.0, 1, 1, 1, 0, 1, 0, 1]).unsqueeze(-1)
-    b_cut = torch.tensor([1.0, 1, 1, 0, 1, 1, 1, 1]).unsqueeze(-1)
+    b_cut = torch.tensor([1.0, 1, 1, 0, 1, 1, 0, 1]).unsqueeze(-1)
     batch["safe_support_a"], batch["safe_support_b"] = a_cut, b_cut
     batch["safe_support"] = torch.cat([a_cut, b_cut], -1)
-    batch["next", "constraint_costs"] = TensorDict(
-        {
-            "a": torch.tensor([0.0, 0, 0, 0, 1, 0, 0, 0]).unsqueeze(-1),  # step 4: cut a rejects it
-            "b": torch.tensor([0.0, 0, 0, 1, 0, 1, 0, 0]).unsqueeze(
-                -1
-            ),  # steps 3, 5: cut b rejects step 3 only
-        },
-        [8],
-    )
+    costs = {
+        "a": torch.tensor([0.0, 0, 0, 0, 1, 0, 1, 1]).unsqueeze(-1),  # cut a keeps step 7, cut b steps 4, 7
+        "b": torch.tensor([0.0, 0, 0, 1, 0, 1, 0, 0]).unsqueeze(-1),  # cut a keeps both, cut b step 5
+    }
+    batch["next", "constraint_costs"] = TensorDict(costs, [8])
+    init = TensorDict({"observation": torch.zeros(2, 1)}, [2])
     loss = SpoilDICELoss(_nu(), gamma=0.5, gradient_penalty=0.0, constraints=2)
-    diag = dice_diagnostics(
-        loss, batch, TensorDict({"observation": torch.zeros(2, 1)}, [2]), role="unlabeled"
-    )
+    diag = dice_diagnostics(loss, batch, init, role="unlabeled")
     by = diag["support"]["by_constraint"]
-    assert by["costly"] == {"a": 1 / 8, "b": 2 / 8}
+    assert by["costly"] == {"a": 3 / 8, "b": 2 / 8}
     assert by["costly_kept"] == {
-        "a": {"a": 0.0, "b": 1.0},
-        "b": {"a": 1.0, "b": 0.5},
-        "all": {"a": 0.0, "b": 0.5},
+        "a": {"a": 1 / 3, "b": 1.0},
+        "b": {"a": 2 / 3, "b": 0.5},
+        "all": {"a": 1 / 3, "b": 0.5},
     }
     assert diag["support"]["kept"] == 5 / 8  # the intersection: steps 0, 1, 2, 5, 7
     text = explain(diag)
-    assert "the a cut lets in 0 % / 100 %, the b cut 100 % / 50 %, their intersection 0 % / 50 %" in text
+    assert "the a cut lets in 33 % / 100 %, the b cut 67 % / 50 %, their intersection 33 % / 50 %" in text
+
     merged = batch.exclude("safe_support_a", "safe_support_b")  # one support for both constraints
     merged["safe_support"] = a_cut * b_cut
     diag = dice_diagnostics(
-        SpoilDICELoss(_nu(), gamma=0.5, gradient_penalty=0.0),
-        merged,
-        TensorDict({"observation": torch.zeros(2, 1)}, [2]),
-        role="unlabeled",
+        SpoilDICELoss(_nu(), gamma=0.5, gradient_penalty=0.0), merged, init, role="unlabeled"
     )
-    assert diag["support"]["by_constraint"]["costly_kept"] == {"all": {"a": 0.0, "b": 0.5}}
-    assert "the support lets in 0 % / 50 %" in explain(diag)
+    assert diag["support"]["by_constraint"]["costly_kept"] == {"all": {"a": 1 / 3, "b": 0.5}}
+    assert "the support lets in 33 % / 50 %" in explain(diag)
+
+    batch["next", "constraint_costs", "b"] = torch.zeros(8, 1)  # nothing costly on b: no share to report
+    diag = dice_diagnostics(loss, batch, init, role="unlabeled")
+    assert diag["support"]["by_constraint"]["costly"]["b"] == 0.0
+    assert "the a cut lets in 33 % / -, the b cut 67 % / -" in explain(diag)
+
+    named_all = batch.exclude("safe_support_b").set("safe_support_all", b_cut)
+    with pytest.raises(ValueError, match="'all'"):
+        dice_diagnostics(loss, named_all, init, role="unlabeled")
+
     del batch["next", "constraint_costs"]  # no per-constraint costs: nothing to set the support against
-    diag = dice_diagnostics(
-        loss, batch, TensorDict({"observation": torch.zeros(2, 1)}, [2]), role="unlabeled"
-    )
-    assert "by_constraint" not in diag["support"]
+    assert "by_constraint" not in dice_diagnostics(loss, batch, init, role="unlabeled")["support"]
