@@ -3,11 +3,14 @@
 :func:`write_atomic` / :func:`save_atomic` write through a temporary file beside the target and
 :func:`os.replace` it into place, so a reader (or a run killed while writing) never sees half a file.
 :func:`update_digest` feeds one named tensor into a hash, the single way the policy files' weight checksum and
-a resumed run's pre-training fingerprint are computed.
+a resumed run's pre-training fingerprint are computed; :func:`code_digest` is the fingerprint of a module's code,
+blind to its docstrings, comments and layout.
 """
 
 from __future__ import annotations
 
+import ast
+import hashlib
 import io
 import os
 from pathlib import Path
@@ -57,3 +60,33 @@ def update_digest(digest, name: str, value: torch.Tensor) -> None:
     value = value.detach().cpu().contiguous()
     digest.update(f"{name}/{value.dtype}/{list(value.shape)}".encode())
     digest.update(value.reshape(-1).view(torch.uint8).numpy() if value.numel() else b"")
+
+
+def code_digest(path: str | os.PathLike) -> str:
+    """The SHA-256 of a Python file's code: its syntax tree without docstrings, so that editing a docstring or a
+    comment, or reformatting, leaves it unchanged, and changing what the code does changes it.
+
+    Examples:
+        >>> import tempfile
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> def digest(text):
+        ...     _ = (folder / "m.py").write_text(text)
+        ...     return code_digest(folder / "m.py")
+        >>> plain = digest("def f(x):\\n    return 2 * x\\n")
+        >>> digest("def f(x):\\n    'Twice x.'\\n    return 2*x  # doubled\\n") == plain  # docstring, comment, layout
+        True
+        >>> digest("def f(x):\\n    return 3 * x\\n") == plain
+        False
+    """
+    tree = ast.parse(Path(path).read_text(encoding="utf-8"))
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (
+            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+            and isinstance(body[0].value.value, str)
+        ):
+            node.body = body[1:] or [ast.Pass()]
+    return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()

@@ -43,6 +43,7 @@ from pathlib import Path
 
 from spoil_torchrl.data.collect import RANDOM_POLICY, Segment, collect
 from spoil_torchrl.data.labeling import POOLS
+from spoil_torchrl.files import code_digest
 from spoil_torchrl.stack import current_stack, stack_differences, stack_label
 from spoil_torchrl.tasks import UnknownDatasetError
 
@@ -66,15 +67,15 @@ class GeneratedDataset:
     def fingerprint(self, num_envs: int) -> str:
         """A hash of everything that determines the file's content: the recipe, ``num_envs``, the bytes of
         every committed policy it rolls out (a policy re-exported under the same name makes the file again) and,
-        where it rolls out a scripted ellipse follower, the source of :mod:`spoil_torchrl.zoo.path_follower`
-        (the follower changed makes the file again)."""
+        where it rolls out a scripted ellipse follower, the code of :mod:`spoil_torchrl.zoo.path_follower`
+        (the follower's code changed makes the file again; an edit of its docstrings or comments does not)."""
         from spoil_torchrl.zoo import path_follower
         from spoil_torchrl.zoo.policy_files import zoo_policy
 
         policies = sorted({s.policy for s in self.segments if s.policy.startswith("zoo:")})
         digests = [hashlib.sha256(zoo_policy(self.env_id, p[4:]).read_bytes()).hexdigest() for p in policies]
         if any(s.policy.startswith(path_follower.ELLIPSE_PREFIX) for s in self.segments):
-            digests.append(hashlib.sha256(Path(path_follower.__file__).read_bytes()).hexdigest())
+            digests.append(code_digest(path_follower.__file__))
         recipe = [self.env_id, self.seed, num_envs, [asdict(s) for s in self.segments], digests]
         text = json.dumps(recipe + (["components"] if self.components else []))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
