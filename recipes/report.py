@@ -46,6 +46,7 @@ import torch
 
 from spoil_torchrl.eval import mean_stderr
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
+from spoil_torchrl.reporting.constraints import constraint_markdown
 from spoil_torchrl.reporting.experiments import finished_results, incomplete, train_section
 from spoil_torchrl.stack import stack_label, stack_name
 
@@ -306,7 +307,8 @@ def main() -> None:
     figures = [(args.plot, lambda path: plot_tradeoff(summary, path))]
     seeds = lambda dataset, algo: len(runs[(dataset, algo)])  # noqa: E731
     figures.append((args.curves, lambda path: plot_learning_curves(learning_curves(runs), path, seeds=seeds)))
-    write_outputs(markdown(summary), args.out, figures)
+    per_constraint = constraint_markdown(runs)  # runs evaluated on several constraints: each one's cost
+    write_outputs(markdown(summary) + ("\n\n" + per_constraint if per_constraint else ""), args.out, figures)
 
 
 def write_outputs(text: str, out: Path | None, figures: list[tuple[Path | None, object]]) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -46,8 +47,8 @@ def write_json(path: Path, payload: dict) -> None:
     write_atomic(path, json.dumps(_json_safe(payload), indent=2, allow_nan=False))
 
 
-def aggregate(evaluations: list[dict], last: int) -> dict:
-    """The paper's per-run aggregate: each metric's mean over the last ``last`` evaluations.
+def aggregate(evaluations: list[dict], last: int, keys: Sequence[str] = METRICS) -> dict:
+    """The paper's per-run aggregate: each metric's (of ``keys``) mean over the last ``last`` evaluations.
 
     Examples:
         >>> runs = [{key: float(i) for key in METRICS} for i in range(4)]
@@ -55,7 +56,7 @@ def aggregate(evaluations: list[dict], last: int) -> dict:
         2.5
     """
     tail = evaluations[-last:]
-    return {key: sum(e[key] for e in tail) / len(tail) for key in METRICS}
+    return {key: sum(e[key] for e in tail) / len(tail) for key in keys}
 
 
 def experiment_cell(cfg: DictConfig) -> dict | None:
