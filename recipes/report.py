@@ -37,14 +37,13 @@ marker per algorithm on every panel, one legend outside the panels).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from collections import defaultdict
 from pathlib import Path
 
 import torch
 
-from spoil_torchrl.eval import mean_stderr
+from spoil_torchrl.eval import format_mean_stderr, mean_stderr
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order, plot_learning_curves, plot_tradeoff
 from spoil_torchrl.reporting.constraints import constraint_markdown
 from spoil_torchrl.reporting.experiments import finished_results, incomplete, train_section
@@ -187,7 +186,7 @@ def summarize(runs: dict[tuple[str, str], list[dict]]) -> dict[tuple[str, str], 
 
 
 def _cell(mean: float, se: float, bold: bool = False) -> str:
-    text = f"{mean:.2f} ± {se:.2f}" if math.isfinite(se) else f"{mean:.2f}"
+    text = format_mean_stderr(mean, se)
     return f"**{text}**" if bold else text
 
 

@@ -28,7 +28,12 @@ from spoil_torchrl.eval.metrics import (
     normalized_return,
     strict_feasible_return,
 )
-from spoil_torchrl.eval.tables import mean_stderr, policy_table, transition_episode_metrics
+from spoil_torchrl.eval.tables import (
+    format_mean_stderr,
+    mean_stderr,
+    policy_table,
+    transition_episode_metrics,
+)
 
 __all__ = [
     "EPISODE_SCHEMA",
@@ -47,6 +52,7 @@ __all__ = [
     "episode_return",
     "feasible_return",
     "mean_of_last",
+    "format_mean_stderr",
     "mean_stderr",
     "normalized_cost",
     "normalized_return",

@@ -26,6 +26,7 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDict
 
+from spoil_torchrl.data.constraint_costs import constraint_names
 from spoil_torchrl.data.episodes import CONSTRAINTS_KEY
 from spoil_torchrl.objectives.functional import bellman_backup, effective_sample_size
 
@@ -137,11 +138,10 @@ def support_by_constraint(data: TensorDict) -> dict | None:
         {'costly': {'a': 0.25, 'b': 0.75}, 'costly_kept': {'a': {'a': 0.0, 'b': 0.6666666666666666}, \
 'b': {'a': 1.0, 'b': 0.6666666666666666}, 'all': {'a': 0.0, 'b': 0.3333333333333333}}}
     """
-    costs = data.get(("next", CONSTRAINTS_KEY), None)
-    if costs is None or "safe_support" not in data.keys():
+    names = constraint_names(data)
+    if not names or "safe_support" not in data.keys():
         return None
-    names = list(costs.keys())
-    costly = {j: costs.get(j).reshape(-1) > 0 for j in names}
+    costly = {j: data.get(("next", CONSTRAINTS_KEY, j)).reshape(-1) > 0 for j in names}
     cuts = sorted(k.removeprefix("safe_support_") for k in data.keys() if k.startswith("safe_support_"))
     inside = {k: data.get(f"safe_support_{k}").reshape(-1) > 0.5 for k in cuts}
     if ALL_CUTS in inside:

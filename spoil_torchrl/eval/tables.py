@@ -54,6 +54,17 @@ def mean_stderr(values: torch.Tensor) -> tuple[float, float]:
     return float(values.mean()), se
 
 
+def format_mean_stderr(mean: float, se: float, digits: int = 2) -> str:
+    """``"mean ± se"`` with ``digits`` decimals, or the mean alone where the standard error is not finite (one
+    seed).
+
+    Examples:
+        >>> format_mean_stderr(2.0, 1.0), format_mean_stderr(0.5, float("nan")), format_mean_stderr(6.0, 1.0, 1)
+        ('2.00 ± 1.00', '0.50', '6.0 ± 1.0')
+    """
+    return f"{mean:.{digits}f} ± {se:.{digits}f}" if math.isfinite(se) else f"{mean:.{digits}f}"
+
+
 def policy_table(episodes: TensorDict, pools: Mapping[str, torch.Tensor], cost_threshold: float) -> str:
     """A Table-I-style markdown table: per pool (label -> episode ids), the number of episodes and the mean +-
     standard error of return, feasible return (threshold ``cost_threshold``) and cost.

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from spoil_torchrl.eval import mean_stderr
+from spoil_torchrl.eval import format_mean_stderr, mean_stderr
 from spoil_torchrl.eval.figures import ALGORITHM_NAMES, algorithm_order
 from spoil_torchrl.runs.results import aggregate
 
@@ -19,8 +19,14 @@ from spoil_torchrl.runs.results import aggregate
 WITHIN_ALL = "feasible_all"
 
 
+def _reported(results: dict) -> set[str]:
+    """The keys every evaluation of a run's aggregate (its last ``last_evaluations``) reports."""
+    evaluations = (results.get("evaluations") or [{}])[-int(results.get("last_evaluations") or 1) :]
+    return set.intersection(*(set(e) for e in evaluations))
+
+
 def constraint_names(results: dict) -> list[str]:
-    """The constraints whose episode costs every evaluation of a run reports (``[]`` for none).
+    """The constraints whose episode costs every evaluation of a run's aggregate reports (``[]`` for none).
 
     Examples:
         >>> constraint_names({"evaluations": [{"cost": 3.0, "cost_x_wall": 1.0, "cost_y_wall": 2.0}]})
@@ -28,9 +34,7 @@ def constraint_names(results: dict) -> list[str]:
         >>> constraint_names({"evaluations": [{"cost": 3.0}]})
         []
     """
-    evaluations = results.get("evaluations") or [{}]
-    shared = set.intersection(*(set(e) for e in evaluations))
-    return sorted(k.removeprefix("cost_") for k in shared if k.startswith("cost_"))
+    return sorted(k.removeprefix("cost_") for k in _reported(results) if k.startswith("cost_"))
 
 
 def _own_leak(group: list[dict], name: str) -> tuple[float, float] | None:
@@ -72,7 +76,7 @@ def constraint_markdown(runs: dict[tuple[str, str], list[dict]]) -> str | None:
             continue
         names = list(next(iter(names)))
         keys = ["cost", *(f"cost_{n}" for n in names)]
-        has_within = all(WITHIN_ALL in r["evaluations"][-1] for a in algos for r in runs[(dataset, a)])
+        has_within = all(WITHIN_ALL in _reported(r) for a in algos for r in runs[(dataset, a)])
         keys += [WITHIN_ALL] if has_within else []
         header = ["algorithm", "seeds", "cost", *(f"{n} cost" for n in names)]
         header += ["episodes within every limit"] if has_within else []
@@ -83,14 +87,14 @@ def constraint_markdown(runs: dict[tuple[str, str], list[dict]]) -> str | None:
             group = runs[(dataset, algo)]
             per_seed = [aggregate(r["evaluations"], int(r["last_evaluations"]), keys) for r in group]
             cells = [
-                "{:.2f} ± {:.2f}".format(
-                    *mean_stderr(torch.tensor([s[k] for s in per_seed], dtype=torch.float64))
-                )
+                format_mean_stderr(*mean_stderr(torch.tensor([s[k] for s in per_seed], dtype=torch.float64)))
                 for k in keys
             ]
             for n in names:
                 leak = _own_leak(group, n)
-                cells.append("-" if leak is None else f"{100 * leak[0]:.1f} ± {100 * leak[1]:.1f} %")
+                cells.append(
+                    "-" if leak is None else f"{format_mean_stderr(100 * leak[0], 100 * leak[1], 1)} %"
+                )
             lines.append(f"| {ALGORITHM_NAMES.get(algo, algo)} | {len(group)} | " + " | ".join(cells) + " |")
         lines.append("")
     if not lines:

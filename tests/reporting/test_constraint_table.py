@@ -44,3 +44,11 @@ def test_no_table_without_per_constraint_costs_or_with_differing_constraints():
     other = _run(1, 1.0, 1.0)
     other["evaluations"] = [{"cost": 2.0, "cost_z": 2.0}]
     assert constraint_markdown({("d", "bc"): [_run(0, 1.0, 1.0), other]}) is None
+
+
+def test_a_key_missing_from_part_of_the_averaged_window_is_left_out_and_one_seed_prints_its_mean():
+    run = _run(0, 4.0, 10.0)
+    del run["evaluations"][1]["feasible_all"]  # inside the last two evaluations the aggregate averages
+    lines = constraint_markdown({("walls", "bc"): [run]}).splitlines()
+    assert "episodes within every limit" not in lines[2]
+    assert lines[4] == "| BC | 1 | 15.00 | 5.00 | 10.00 | - | - |"  # one seed: no standard error
