@@ -307,7 +307,8 @@ def ensure_generated(name: str, *, force: bool = False, num_envs: int = 8, progr
         if cached.get("fingerprint") != fingerprint:
             print(
                 f"{path}: made by another recipe (fingerprint {cached.get('fingerprint')}, now {fingerprint}: the "
-                "segments, seed, num_envs or the bytes of a policy it rolls out changed); making it again"
+                "segments, seed, num_envs, the bytes of a policy it rolls out or the ellipse follower's code "
+                "changed); making it again"
             )
         elif cached.get("stack") is None:
             print(
